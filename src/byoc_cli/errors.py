@@ -1,0 +1,68 @@
+"""Typed errors raised by the core.
+
+Every error the library raises on purpose derives from :class:`ByocError`. The
+CLI turns these into a one-line message on stderr and exit code 1; library
+code never prints or exits.
+"""
+
+from __future__ import annotations
+
+
+class ByocError(Exception):
+    """Base class of every error raised on purpose by byoc-cli."""
+
+
+class ShapeError(ByocError, ValueError):
+    """A tensor or array has the wrong shape, dtype or size."""
+
+
+class InputError(ByocError):
+    """An input file is missing, unreadable, malformed or unusable.
+
+    Args:
+        path: the offending file (or folder).
+        problem: what is wrong with it, as a short phrase.
+    """
+
+    def __init__(self, path: object, problem: str) -> None:
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class DatasetError(InputError):
+    """A dataset folder (RGB-D video, 3DMatch benchmark) cannot be used."""
+
+
+class WeightsError(InputError):
+    """A weights file does not match the weights specification."""
+
+
+class DependencyError(ByocError):
+    """An optional dependency (open3d) is missing or fails to import."""
+
+
+class RegistrationError(ByocError):
+    """Registration could not produce a transform (e.g. no correspondences)."""
+
+
+def require_open3d():
+    """Import open3d lazily, with an install hint if that fails.
+
+    Returns:
+        The ``open3d`` module.
+
+    Raises:
+        DependencyError: open3d is not installed or its import fails (for
+            instance when the system library libusb-1.0 is missing).
+    """
+    try:
+        import open3d as o3d
+    except Exception as exc:  # ImportError, OSError from a missing shared library
+        raise DependencyError(
+            f"open3d is needed for this feature but could not be imported ({exc}); "
+            "install it with `pip install open3d-cpu` (Linux x86-64) or `pip install open3d`, "
+            "and on Debian/Ubuntu `apt-get install -y libusb-1.0-0`"
+        ) from exc
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d

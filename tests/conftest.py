@@ -1,0 +1,29 @@
+"""Shared fixtures: the real-data folder beside the project, seeded generators."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+SHARED_DATA = Path(
+    os.environ.get("BYOC_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
+)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Path of ``../shared/data``; skips when absent, fails in CI (CI must not skip)."""
+    if not SHARED_DATA.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"real data missing in CI: {SHARED_DATA}")
+        pytest.skip(f"real data not found at {SHARED_DATA} (set BYOC_SHARED_DATA)")
+    return SHARED_DATA
+
+
+@pytest.fixture
+def generator() -> torch.Generator:
+    """A CPU generator seeded with 0."""
+    return torch.Generator().manual_seed(0)
