@@ -74,3 +74,37 @@ def voxelize(points: torch.Tensor, voxel_size: float) -> VoxelGrid:
     rank[order] = torch.arange(order.shape[0], device=device)
     voxel_of_point = rank[inverse]
     return VoxelGrid(coords[point_index], point_index, voxel_of_point)
+
+
+def _neighbour_offsets(device: torch.device) -> torch.Tensor:
+    r = torch.arange(-1, 2, device=device)
+    return torch.cartesian_prod(r, r, r)
+
+
+def near_occupied(points_query: torch.Tensor, points_ref: torch.Tensor, cell: float) -> torch.Tensor:
+    """Which query points lie in or next to a cell occupied by a reference point.
+
+    Both clouds are quantised at ``cell``; a query point counts when one of the 27 cells
+    around its own holds a reference point, i.e. it has a reference point within at most
+    ``2 * sqrt(3) * cell`` and every point within ``cell`` is found. Runs in
+    O((N + M) log M) with sorted keys, no pairwise distances.
+
+    Args:
+        points_query: ``(N, 3)``.
+        points_ref: ``(M, 3)``.
+        cell: cell size (> 0).
+
+    Returns:
+        ``(N,)`` bool.
+    """
+    if points_query.shape[0] == 0 or points_ref.shape[0] == 0:
+        return torch.zeros(points_query.shape[0], dtype=torch.bool, device=points_query.device)
+    q = torch.floor(points_query.to(torch.float64) / cell).to(torch.int64)
+    r = torch.floor(points_ref.to(torch.float64) / cell).to(torch.int64)
+    ref_keys = torch.unique(voxel_keys(r))
+    hit = torch.zeros(q.shape[0], dtype=torch.bool, device=q.device)
+    for offset in _neighbour_offsets(q.device):
+        keys = voxel_keys(q + offset)
+        pos = torch.searchsorted(ref_keys, keys).clamp_max(ref_keys.shape[0] - 1)
+        hit |= ref_keys[pos] == keys
+    return hit

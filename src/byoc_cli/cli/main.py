@@ -1,0 +1,62 @@
+"""The ``byoc`` command: a Click group whose subcommands import their heavy modules lazily."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+
+import click
+
+from byoc_cli import __version__
+
+# subcommand name -> (module, attribute); imported only when the command runs or --help asks
+_COMMANDS = {
+    "register": ("byoc_cli.cli.register", "register"),
+    "weights": ("byoc_cli.cli.weights", "weights"),
+    "train": ("byoc_cli.cli.train", "train"),
+    "eval-fmr": ("byoc_cli.cli.evaluate", "eval_fmr"),
+    "eval-pairs": ("byoc_cli.cli.evaluate", "eval_pairs"),
+}
+
+
+class LazyGroup(click.Group):
+    """A group that imports a subcommand's module only when it is used."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(name for name in _COMMANDS if self._available(name))
+
+    @staticmethod
+    def _available(name: str) -> bool:
+        module = _COMMANDS[name][0]
+        return importlib.util.find_spec(module) is not None
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in _COMMANDS or not self._available(name):
+            return None
+        module, attr = _COMMANDS[name]
+        return getattr(importlib.import_module(module), attr)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="byoc")
+@click.option("-v", "--verbose", count=True, help="More log output on stderr (-vv for debug).")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr.")
+def cli(verbose: int, quiet: bool) -> None:
+    """Register point clouds with features learned from raw RGB-D video (BYOC).
+
+    Results (matrices, JSON) go to stdout or the files named; progress, tables and
+    logs go to stderr. Exit codes: 0 success, 1 bad input or runtime error, 2 usage
+    error, 3 registered below the confidence gate.
+    """
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    logging.basicConfig(level=level, format="byoc: %(levelname)s: %(message)s", force=True)
+    logging.captureWarnings(True)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    cli(prog_name="byoc")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

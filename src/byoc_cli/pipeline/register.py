@@ -1,0 +1,222 @@
+"""Pairwise registration: features -> ratio-test correspondences -> robust fit.
+
+The result's transform is ``T_tgt_src`` (4x4, float64, column vectors): it maps source
+points into the target frame, ``x_tgt = R x_src + t``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+
+from byoc_cli.errors import RegistrationError
+from byoc_cli.fitting import randomized_procrustes, ransac
+from byoc_cli.geometry import apply_transform
+from byoc_cli.geometry.voxel import near_occupied
+from byoc_cli.matching import ratio_test_correspondences
+from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
+
+ESTIMATORS = ("procrustes", "ransac")
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """Settings of :func:`register_clouds` (the CLI's flags map one to one).
+
+    Attributes:
+        num_correspondences: top k ratio-test matches kept per direction (2k in all).
+        max_points: size of the seeded random subset of kept points per cloud that enters
+            matching (0 = all).
+        estimator: ``"procrustes"`` (randomized Procrustes, the paper's) or ``"ransac"``.
+        num_subsets, subset_size: randomized Procrustes' candidates and their size.
+        inlier_factor: inlier threshold as a multiple of the voxel size (RANSAC's threshold,
+            and the threshold of the reported inliers and overlap).
+        ransac_iterations, ransac_confidence: RANSAC's limits.
+        refine: ``None`` or ``"icp"`` (point-to-plane ICP in open3d).
+        icp_factor: ICP's correspondence distance as a multiple of the voxel size.
+        seed: seeds every random choice (subset, sampling).
+    """
+
+    num_correspondences: int = 200
+    max_points: int = 5000
+    estimator: str = "procrustes"
+    num_subsets: int = 100
+    subset_size: int = 20
+    inlier_factor: float = 2.0
+    ransac_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    refine: str | None = None
+    icp_factor: float = 2.0
+    seed: int = 0
+    chunk_size: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if self.refine not in (None, "icp"):
+            raise ValueError(f"refine must be None or 'icp', got {self.refine!r}")
+        if self.num_correspondences < 1 or self.max_points < 0:
+            raise ValueError("num_correspondences must be >= 1 and max_points >= 0")
+
+
+class RegistrationResult(NamedTuple):
+    """Outcome of :func:`register_clouds`.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64.
+        num_correspondences: correspondences the estimator saw.
+        num_inliers: correspondences within the inlier threshold under ``T_tgt_src``.
+        inlier_ratio: ``num_inliers / num_correspondences``.
+        confidence: ratio-weighted inlier share in [0, 1]: sum of the weights of inlier
+            correspondences over the sum of all weights (0 when fewer than 3 inliers).
+        overlap: share of the kept source points that land next to a kept target point.
+        num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
+        inlier_threshold: in the units of the points.
+        timings: seconds per stage.
+    """
+
+    T_tgt_src: torch.Tensor
+    num_correspondences: int
+    num_inliers: int
+    inlier_ratio: float
+    confidence: float
+    overlap: float
+    num_points_src: int
+    num_points_tgt: int
+    inlier_threshold: float
+    timings: dict[str, float]
+
+
+@dataclass
+class _Timer:
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def __call__(self, name: str, start: float) -> float:
+        now = time.perf_counter()
+        self.timings[name] = self.timings.get(name, 0.0) + now - start
+        return now
+
+
+def sample_subset(n: int, max_points: int, generator: torch.Generator) -> torch.Tensor | None:
+    """A sorted seeded random subset of ``range(n)`` of size ``max_points`` (None = all)."""
+    if max_points <= 0 or n <= max_points:
+        return None
+    return torch.randperm(n, generator=generator)[:max_points].sort().values
+
+
+def _subset(cloud: CloudFeatures, idx: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    if idx is None:
+        return cloud.points, cloud.feats
+    return cloud.points[idx], cloud.feats[idx]
+
+
+def estimate_transform(
+    src: CloudFeatures, tgt: CloudFeatures, config: RegisterConfig, voxel_size: float
+) -> RegistrationResult:
+    """Match two featured clouds and fit ``T_tgt_src`` (no I/O, no feature extraction)."""
+    timer = _Timer()
+    start = time.perf_counter()
+    generator = torch.Generator().manual_seed(config.seed)
+    points_src, feats_src = _subset(src, sample_subset(len(src.points), config.max_points, generator))
+    points_tgt, feats_tgt = _subset(tgt, sample_subset(len(tgt.points), config.max_points, generator))
+    corr = ratio_test_correspondences(
+        feats_src, feats_tgt, k=config.num_correspondences, chunk_size=config.chunk_size
+    )
+    if corr.src_idx.numel() < 3:
+        raise RegistrationError(f"only {corr.src_idx.numel()} correspondences (need 3)")
+    p = points_src[corr.src_idx].to(torch.float64)
+    q = points_tgt[corr.tgt_idx].to(torch.float64)
+    w = corr.weight.detach().to(torch.float64)
+    start = timer("match", start)
+
+    threshold = config.inlier_factor * voxel_size
+    if config.estimator == "procrustes":
+        fit = randomized_procrustes(
+            p, q, w, num_subsets=config.num_subsets, subset_size=config.subset_size,
+            generator=generator,
+        )
+    else:
+        fit = ransac(
+            p, q, inlier_threshold=threshold, max_iterations=config.ransac_iterations,
+            confidence=config.ransac_confidence, generator=generator,
+        )
+    T = fit.T_tgt_src.to(torch.float64)
+    start = timer("fit", start)
+
+    if config.refine == "icp":
+        T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
+        start = timer("refine", start)
+
+    residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
+    inlier = residual < threshold
+    num_inliers = int(inlier.sum())
+    confidence = float(w[inlier].sum() / w.sum().clamp_min(1e-12)) if num_inliers >= 3 else 0.0
+    overlap = near_occupied(apply_transform(T, src.points), tgt.points, voxel_size)
+    timer("verify", start)
+    return RegistrationResult(
+        T_tgt_src=T,
+        num_correspondences=int(p.shape[0]),
+        num_inliers=num_inliers,
+        inlier_ratio=num_inliers / p.shape[0],
+        confidence=confidence,
+        overlap=float(overlap.float().mean()),
+        num_points_src=int(src.points.shape[0]),
+        num_points_tgt=int(tgt.points.shape[0]),
+        inlier_threshold=threshold,
+        timings=timer.timings,
+    )
+
+
+def refine_icp(
+    points_src: torch.Tensor, points_tgt: torch.Tensor, T_init: torch.Tensor, max_distance: float
+) -> torch.Tensor:
+    """Point-to-plane ICP (open3d) from ``T_init``; returns the refined ``T_tgt_src``."""
+    from byoc_cli.errors import require_open3d
+
+    o3d = require_open3d()
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_src.double().numpy()))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_tgt.double().numpy()))
+    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30))
+    out = reg.registration_icp(
+        src, tgt, max_distance, T_init.double().numpy(),
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(max_iteration=50),
+    )
+    return torch.from_numpy(out.transformation.copy()).to(torch.float64)
+
+
+def register_clouds(
+    points_src: torch.Tensor,
+    points_tgt: torch.Tensor,
+    extractor: FeatureExtractor,
+    config: RegisterConfig | None = None,
+) -> RegistrationResult:
+    """Register ``points_src`` onto ``points_tgt``.
+
+    Args:
+        points_src: ``(N, 3)`` source points (metres).
+        points_tgt: ``(M, 3)`` target points (metres).
+        extractor: computes per-point features (voxelises first).
+        config: settings; defaults to :class:`RegisterConfig()`.
+
+    Returns:
+        :class:`RegistrationResult` whose ``timings`` also hold ``features_src`` and
+        ``features_tgt``.
+
+    Raises:
+        RegistrationError: a cloud has fewer than 3 voxels, or no correspondences.
+    """
+    config = config or RegisterConfig()
+    start = time.perf_counter()
+    src = extractor(points_src, label="source")
+    t_src = time.perf_counter()
+    tgt = extractor(points_tgt, label="target")
+    t_tgt = time.perf_counter()
+    result = estimate_transform(src, tgt, config, extractor.voxel_size)
+    timings = {"features_src": t_src - start, "features_tgt": t_tgt - t_src, **result.timings}
+    timings["total"] = time.perf_counter() - start
+    return result._replace(timings=timings)

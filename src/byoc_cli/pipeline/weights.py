@@ -1,0 +1,248 @@
+"""Reading and writing weights files (see ``weights-spec/README.md``).
+
+A weights file is safetensors (tensors) plus one JSON metadata object under the
+header key ``byoc``. Nothing is ever unpickled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import struct
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+from byoc_cli.errors import WeightsError
+from byoc_cli.io.atomic import atomic_write_bytes
+from byoc_cli.models.encoder import ENCODER_CONFIGS, EncoderConfig, GeometricEncoder
+
+FORMAT = "byoc-weights"
+FORMAT_VERSION = 1
+METADATA_KEY = "byoc"
+VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "random-init")
+_REQUIRED = {
+    "format": str,
+    "format_version": int,
+    "architecture": str,
+    "architecture_config": dict,
+    "feature_dim": int,
+    "voxel_size": (int, float),
+    "training": dict,
+    "code_version": str,
+    "created": str,
+    "tensors_sha256": str,
+}
+_TRAINING_REQUIRED = {"variant": str, "steps": int, "seed": int, "metrics": dict}
+_MAX_HEADER_BYTES = 100 * 1024 * 1024
+
+
+class LoadedWeights(NamedTuple):
+    """A validated weights file.
+
+    Attributes:
+        encoder: the geometric encoder in eval mode, on CPU.
+        metadata: the metadata object (see the spec).
+        file_sha256: SHA-256 of the whole file (hex).
+        path: where it was read from.
+    """
+
+    encoder: GeometricEncoder
+    metadata: dict[str, Any]
+    file_sha256: str
+    path: str
+
+
+def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
+    """Hash a tensor payload as the spec defines (name order; name, dtype, shape, bytes)."""
+    digest = hashlib.sha256()
+    for name in sorted(tensors):
+        tensor = tensors[name].detach().cpu().contiguous()
+        digest.update(name.encode("utf-8"))
+        digest.update(str(tensor.dtype).removeprefix("torch.").encode("ascii"))
+        digest.update(",".join(str(s) for s in tensor.shape).encode("ascii"))
+        digest.update(tensor.numpy().astype(tensor.numpy().dtype.newbyteorder("<")).tobytes())
+    return digest.hexdigest()
+
+
+def _state_tensors(encoder: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().cpu().contiguous().clone() for k, v in encoder.state_dict().items()}
+
+
+def build_metadata(
+    encoder: GeometricEncoder,
+    *,
+    voxel_size: float,
+    variant: str,
+    data: Any = None,
+    steps: int = 0,
+    seed: int = 0,
+    metrics: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """Metadata for ``encoder`` (without ``tensors_sha256``, added by :func:`save_weights`)."""
+    from byoc_cli import __version__
+
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    config: EncoderConfig = encoder.config
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "architecture": config.name,
+        "architecture_config": dataclasses.asdict(config),
+        "feature_dim": int(config.out_dim),
+        "voxel_size": float(voxel_size),
+        "training": {
+            "variant": variant,
+            "data": data if data is not None else [],
+            "steps": int(steps),
+            "seed": int(seed),
+            "metrics": {k: float(v) for k, v in (metrics or {}).items()},
+        },
+        "code_version": __version__,
+        "created": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
+
+
+def save_weights(path: str | Path, encoder: GeometricEncoder, metadata: dict[str, Any]) -> str:
+    """Write ``encoder`` with ``metadata`` atomically; returns the file's SHA-256."""
+    from safetensors.torch import save
+
+    tensors = _state_tensors(encoder)
+    meta = dict(metadata)
+    meta["tensors_sha256"] = tensors_sha256(tensors)
+    blob = save(tensors, metadata={METADATA_KEY: json.dumps(meta, sort_keys=True)})
+    atomic_write_bytes(path, blob)
+    return hashlib.sha256(blob).hexdigest()
+
+
+def _read_header(path: Path, blob: bytes) -> dict[str, Any]:
+    if len(blob) < 8:
+        raise WeightsError(path, "not a safetensors file (too short)")
+    (header_len,) = struct.unpack("<Q", blob[:8])
+    if header_len > min(_MAX_HEADER_BYTES, len(blob) - 8):
+        raise WeightsError(path, "not a safetensors file (bad header length)")
+    try:
+        header = json.loads(blob[8 : 8 + header_len])
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WeightsError(path, "not a safetensors file (header is not JSON)") from exc
+    if not isinstance(header, dict):
+        raise WeightsError(path, "not a safetensors file (header is not an object)")
+    return header
+
+
+def validate_metadata(path: str | Path, meta: Any) -> EncoderConfig:
+    """Check a metadata object against the spec; return the encoder configuration.
+
+    Raises:
+        WeightsError: naming the first problem found.
+    """
+    if not isinstance(meta, dict):
+        raise WeightsError(path, "metadata is not a JSON object")
+    if meta.get("format") != FORMAT:
+        raise WeightsError(path, f"not a byoc weights file (format is {meta.get('format')!r})")
+    version = meta.get("format_version")
+    if isinstance(version, int) and version > FORMAT_VERSION:
+        raise WeightsError(
+            path, f"format version {version} is newer than this byoc-cli supports "
+            f"({FORMAT_VERSION}); upgrade byoc-cli"
+        )
+    for key, kind in _REQUIRED.items():
+        if key not in meta:
+            raise WeightsError(path, f"metadata lacks '{key}'")
+        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
+            raise WeightsError(path, f"metadata '{key}' has the wrong type")
+    if version != FORMAT_VERSION:
+        raise WeightsError(path, f"unsupported format version {version!r}")
+    for key, kind in _TRAINING_REQUIRED.items():
+        value = meta["training"].get(key)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise WeightsError(path, f"metadata 'training.{key}' is missing or has the wrong type")
+    if meta["training"]["variant"] not in VARIANTS:
+        raise WeightsError(path, f"unknown training variant {meta['training']['variant']!r}")
+    arch = meta["architecture"]
+    if arch not in ENCODER_CONFIGS:
+        raise WeightsError(
+            path, f"unknown architecture {arch!r} (known: {', '.join(sorted(ENCODER_CONFIGS))})"
+        )
+    if not meta["voxel_size"] > 0:
+        raise WeightsError(path, "metadata 'voxel_size' must be > 0")
+    try:
+        config = EncoderConfig(**meta["architecture_config"])
+    except (TypeError, ValueError) as exc:
+        raise WeightsError(path, f"architecture_config does not fit {arch!r}: {exc}") from exc
+    if config.name != arch:
+        raise WeightsError(path, f"architecture_config names {config.name!r}, not {arch!r}")
+    if config.out_dim != meta["feature_dim"]:
+        raise WeightsError(path, "feature_dim does not match architecture_config")
+    return config
+
+
+def load_weights(path: str | Path) -> LoadedWeights:
+    """Read, validate and build the encoder of a weights file.
+
+    Raises:
+        WeightsError: the file is missing, not safetensors, or does not match the spec
+            (metadata, tensor names, shapes, dtypes or checksum).
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load
+
+    path = Path(path)
+    try:
+        blob = path.read_bytes()
+    except FileNotFoundError as exc:
+        raise WeightsError(path, "no such file") from exc
+    except IsADirectoryError as exc:
+        raise WeightsError(path, "is a directory") from exc
+    except OSError as exc:
+        raise WeightsError(path, f"cannot read ({exc.strerror})") from exc
+    header = _read_header(path, blob)
+    raw_meta = (header.get("__metadata__") or {}).get(METADATA_KEY)
+    if raw_meta is None:
+        raise WeightsError(path, "safetensors file has no byoc metadata (not a byoc weights file)")
+    try:
+        meta = json.loads(raw_meta)
+    except json.JSONDecodeError as exc:
+        raise WeightsError(path, "byoc metadata is not valid JSON") from exc
+    config = validate_metadata(path, meta)
+    try:
+        tensors = load(blob)
+    except (SafetensorError, ValueError, RuntimeError) as exc:
+        raise WeightsError(path, f"corrupt tensor data ({exc})") from exc
+    if tensors_sha256(tensors) != meta["tensors_sha256"]:
+        raise WeightsError(path, "tensor checksum mismatch (file corrupt or edited)")
+    encoder = GeometricEncoder(config)
+    expected = encoder.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    extra = sorted(set(tensors) - set(expected))
+    if missing or extra:
+        what = f"missing tensor {missing[0]!r}" if missing else f"unexpected tensor {extra[0]!r}"
+        raise WeightsError(path, f"tensors do not match architecture {config.name!r}: {what}")
+    for name, ref in expected.items():
+        got = tensors[name]
+        if got.shape != ref.shape or got.dtype != ref.dtype:
+            raise WeightsError(
+                path,
+                f"tensor {name!r} is {got.dtype} {tuple(got.shape)}, "
+                f"expected {ref.dtype} {tuple(ref.shape)}",
+            )
+    encoder.load_state_dict(tensors, strict=True)
+    encoder.eval()
+    return LoadedWeights(encoder, meta, hashlib.sha256(blob).hexdigest(), str(path))
+
+
+def init_weights(arch: str, seed: int, voxel_size: float = 0.025) -> tuple[GeometricEncoder, dict]:
+    """A randomly initialised encoder (seeded) and its ``random-init`` metadata."""
+    from byoc_cli.models.encoder import build_encoder
+
+    fork_devices: list = []
+    with torch.random.fork_rng(devices=fork_devices):
+        torch.manual_seed(seed)
+        encoder = build_encoder(arch)
+    encoder.eval()
+    meta = build_metadata(encoder, voxel_size=voxel_size, variant="random-init", seed=seed)
+    return encoder, meta
