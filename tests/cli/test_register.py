@@ -1,0 +1,215 @@
+"""`byoc register` end to end: outputs, exit codes, messages, atomicity, determinism."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from byoc_cli.cli.main import cli
+from byoc_cli.geometry.transforms import axis_angle_to_matrix
+from byoc_cli.io import read_transform, write_ply
+
+
+def _rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    c = (np.trace(R_a @ R_b.T) - 1) / 2
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+@pytest.fixture(scope="module")
+def demo(shared_data: Path) -> Path:
+    return shared_data / "pairs" / "3dmatch_demo"
+
+
+@pytest.fixture(scope="module")
+def random_weights(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("w") / "random.safetensors"
+    result = CliRunner().invoke(cli, ["weights", "init", "--seed", "1", "-o", str(path)])
+    assert result.exit_code == 0, result.output
+    return path
+
+
+def _synthetic_pair(tmp_path: Path) -> tuple[Path, Path, np.ndarray]:
+    """A box-room-like surface and a rigidly moved copy; returns paths and T_tgt_src."""
+    import torch
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    pts = rng.uniform(-1, 1, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    pts[np.arange(n), axis] = np.sign(pts[np.arange(n), axis])  # points on a cube's faces
+    pts = pts * np.array([1.5, 1.0, 0.8])
+    R = axis_angle_to_matrix(torch.tensor([0.1, -0.2, 0.15], dtype=torch.float64)).numpy()
+    t = np.array([0.2, -0.1, 0.05])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    src = tmp_path / "src.ply"
+    tgt = tmp_path / "tgt.ply"
+    write_ply(src, pts)
+    write_ply(tgt, pts @ R.T + t)
+    return src, tgt, T
+
+
+@pytest.mark.realdata
+def test_fpfh_registers_demo_pair(runner, demo, tmp_path):
+    out = tmp_path / "T.txt"
+    report = tmp_path / "r.json"
+    aligned = tmp_path / "aligned.ply"
+    result = runner.invoke(
+        cli,
+        ["register", str(demo / "source.ply"), str(demo / "target.ply"), "--features", "fpfh",
+         "-o", str(out), "--json", str(report), "--aligned", str(aligned)],
+    )
+    assert result.exit_code == 0, result.output
+    T = read_transform(out)
+    T_gt = np.loadtxt(demo / "T_gt.txt")
+    assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 5.0
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.10
+    data = json.loads(report.read_text())
+    for key in ("T_tgt_src", "num_correspondences", "num_inliers", "inlier_ratio", "overlap",
+                "confidence", "voxel_size_m", "seed", "timings_s", "weights_sha256",
+                "byoc_cli_version"):
+        assert key in data
+    assert 0.0 <= data["confidence"] <= 1.0
+    assert np.allclose(np.array(data["T_tgt_src"]), T)
+    assert aligned.stat().st_size > 0
+
+
+def test_same_seed_byte_identical_and_stdout(runner, random_weights, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    outs = []
+    for name in ("a.txt", "b.txt"):
+        path = tmp_path / name
+        res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(random_weights),
+                                  "--seed", "7", "-o", str(path)])
+        assert res.exit_code == 0, res.output
+        outs.append(path.read_bytes())
+    assert outs[0] == outs[1]
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(random_weights),
+                              "--seed", "7", "-o", "-"])
+    assert res.exit_code == 0
+    assert res.stdout.encode() == outs[0]  # stdout carries the matrix only
+    assert len(res.stdout.strip().splitlines()) == 4
+
+
+def test_ransac_estimator_and_icp_recover_synthetic(runner, tmp_path):
+    src, tgt, T_gt = _synthetic_pair(tmp_path)
+    out = tmp_path / "T.txt"
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--features", "fpfh",
+                              "--voxel-size", "0.05", "--estimator", "ransac", "--refine", "icp",
+                              "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    T = read_transform(out)
+    assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 2.0
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.05
+
+
+def test_confidence_gate_exit_3(runner, random_weights, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    out = tmp_path / "T.txt"
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(random_weights),
+                              "--min-confidence", "1.0", "-o", str(out)])
+    assert res.exit_code == 3
+    assert "below --min-confidence" in res.stderr
+    assert out.exists()  # registered: outputs are written, the exit code carries the verdict
+
+
+def _write(path: Path, content: bytes) -> Path:
+    path.write_bytes(content)
+    return path
+
+
+BAD_INPUTS = {
+    "missing": (lambda d: d / "nope.ply", "no such file"),
+    "garbage": (lambda d: _write(d / "g.ply", b"\x00\x01garbage" * 10), "PLY"),
+    "empty_npy": (lambda d: (np.save(d / "e.npy", np.zeros((0, 3))), d / "e.npy")[1], "empty"),
+    "wrong_shape": (lambda d: (np.save(d / "w.npy", np.zeros((5, 2))), d / "w.npy")[1], "(5, 2)"),
+    "all_nan": (lambda d: (np.save(d / "n.npy", np.full((9, 3), np.nan)), d / "n.npy")[1], "finite"),
+    "millimetres": (
+        lambda d: (np.save(d / "mm.npy", np.random.default_rng(0).uniform(0, 4000, (500, 3))),
+                   d / "mm.npy")[1],
+        "--scale 0.001",
+    ),
+    "too_few": (lambda d: (np.save(d / "f.npy", np.zeros((2, 3))), d / "f.npy")[1], "voxel"),
+    "unknown_ext": (lambda d: _write(d / "x.foo", b"1 2 3\n"), "extension"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_exit_1_one_line_no_output(runner, tmp_path, case):
+    make, phrase = BAD_INPUTS[case]
+    bad = make(tmp_path)
+    good, _, _ = _synthetic_pair(tmp_path)
+    out, report, aligned = tmp_path / "T.txt", tmp_path / "r.json", tmp_path / "a.ply"
+    res = runner.invoke(cli, ["register", str(bad), str(good), "--features", "fpfh", "-o", str(out),
+                              "--json", str(report), "--aligned", str(aligned)])
+    assert res.exit_code == 1, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("byoc: error")]
+    assert len(lines) == 1, res.stderr
+    assert bad.name in lines[0] or case == "too_few"
+    assert phrase in lines[0]
+    assert not out.exists() and not report.exists() and not aligned.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".") or "tmp" in p.name]
+
+
+def test_nan_points_dropped_with_warning(runner, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    from byoc_cli.io import read_point_cloud
+
+    pts = read_point_cloud(src).points
+    pts[:10] = np.nan
+    np.save(tmp_path / "nan.npy", pts)
+    res = runner.invoke(cli, ["register", str(tmp_path / "nan.npy"), str(tgt), "--features", "fpfh",
+                              "-o", str(tmp_path / "T.txt")])
+    assert res.exit_code == 0, res.output
+    assert "dropped 10 point(s)" in res.stderr
+
+
+def test_scale_option_returns_transform_in_input_units(runner, tmp_path):
+    src, tgt, T_gt = _synthetic_pair(tmp_path)
+    from byoc_cli.io import read_point_cloud
+
+    for name, path in (("src_mm.npy", src), ("tgt_mm.npy", tgt)):
+        np.save(tmp_path / name, read_point_cloud(path).points * 1000.0)
+    out = tmp_path / "T.txt"
+    res = runner.invoke(cli, ["register", str(tmp_path / "src_mm.npy"), str(tmp_path / "tgt_mm.npy"),
+                              "--features", "fpfh", "--voxel-size", "0.05", "--estimator", "ransac",
+                              "--scale", "0.001", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    T = read_transform(out)
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3] * 1000.0) < 50.0  # millimetres
+
+
+def test_usage_errors_exit_2(runner, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--estimator", "magic"])
+    assert res.exit_code == 2 and "--estimator" in res.stderr
+    res = runner.invoke(cli, ["register", str(src), str(tgt)])  # byoc features need weights
+    assert res.exit_code == 2 and "--weights" in res.stderr
+    res = runner.invoke(cli, ["register", str(tmp_path / "d.png"), str(tgt)])
+    assert res.exit_code == 2 and "--intrinsics" in res.stderr
+
+
+def test_bad_weights_file_exit_1(runner, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    bad = _write(tmp_path / "w.safetensors", b"not weights at all")
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(bad), "-o",
+                              str(tmp_path / "T.txt")])
+    assert res.exit_code == 1
+    assert "w.safetensors" in res.stderr and "safetensors" in res.stderr
+    assert not (tmp_path / "T.txt").exists()
+
+
+def test_help_states_convention(runner):
+    res = runner.invoke(cli, ["register", "--help"])
+    assert res.exit_code == 0
+    assert "x_tgt = R x_src + t" in res.output
