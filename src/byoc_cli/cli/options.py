@@ -10,7 +10,7 @@ voxel_size_option = click.option(
     "--voxel-size",
     type=click.FloatRange(min=0, min_open=True),
     default=None,
-    help="Voxel size in metres [default: the weights' voxel size, 0.025].",
+    help="Voxel size in metres [default: the weights' voxel size (0.025) for byoc, 0.05 for fpfh].",
 )
 seed_option = click.option(
     "--seed", type=click.IntRange(min=0), default=0, show_default=True,

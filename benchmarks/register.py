@@ -1,0 +1,167 @@
+"""Benchmark of `byoc register` against Open3D FPFH + RANSAC, measured in one run.
+
+Prints, on the 3DMatch sample fragments (or any pair given), at 2.5 cm:
+  * per-stage times of the in-process registration (median of repeats) for the `compact` and
+    `minkunet34c` encoders (random weights: speed does not depend on the values);
+  * Open3D FPFH + RANSAC (tutorial settings: mutual filter, 100k iterations, 0.999) at 5 cm and
+    2.5 cm on the same pair, and the speed ratio;
+  * the sparse convolution's achieved FLOP/s against a dense matmul of the same width;
+  * the peak RSS of the whole `byoc register` command (a subprocess).
+
+Usage: python benchmarks/register.py [--repeats 5] [SOURCE TARGET]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from byoc_cli.io import read_point_cloud
+from byoc_cli.pipeline.features import ByocExtractor
+from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, register_clouds
+from byoc_cli.pipeline.weights import init_weights, save_weights
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT.parent / "shared" / "data" / "3dmatch" / "sample" / "3DMatch" / "7-scenes-redkitchen"
+VOXEL = 0.025
+
+
+def median_time(fn, repeats: int) -> tuple[float, object]:
+    times, out = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times), out
+
+
+def bench_byoc(arch: str, src: torch.Tensor, tgt: torch.Tensor, repeats: int) -> dict:
+    encoder, _ = init_weights(arch, seed=0)
+    extractor = ByocExtractor(encoder, VOXEL)
+    config = RegisterConfig()
+    extractor(src)  # warm-up (allocator, thread pool)
+    t_src, f_src = median_time(lambda: extractor(src), repeats)
+    t_tgt, f_tgt = median_time(lambda: extractor(tgt), repeats)
+    t_est, res = median_time(lambda: estimate_transform(f_src, f_tgt, config, VOXEL), repeats)
+    t_all, _ = median_time(lambda: register_clouds(src, tgt, extractor, config), repeats)
+    return {
+        "arch": arch,
+        "voxels_src": f_src.points.shape[0],
+        "voxels_tgt": f_tgt.points.shape[0],
+        "features_src_s": t_src,
+        "features_tgt_s": t_tgt,
+        "match_s": res.timings["match"],
+        "fit_s": res.timings["fit"],
+        "match_fit_verify_s": t_est,
+        "register_s": t_all,
+        "params": sum(p.numel() for p in encoder.parameters()),
+    }
+
+
+def bench_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, repeats: int) -> dict:
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    reg = o3d.pipelines.registration
+
+    def run():
+        def prep(points):
+            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+            down = pcd.voxel_down_sample(voxel)
+            down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+            fpfh = reg.compute_fpfh_feature(
+                down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+            )
+            return down, fpfh
+
+        s, fs = prep(src)
+        t, ft = prep(tgt)
+        dist = 1.5 * voxel
+        return reg.registration_ransac_based_on_feature_matching(
+            s, t, fs, ft, True, dist, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+             reg.CorrespondenceCheckerBasedOnDistance(dist)],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
+
+    o3d.utility.random.seed(0)
+    t, result = median_time(run, repeats)
+    return {"voxel": voxel, "register_s": t, "T": np.asarray(result.transformation)}
+
+
+def peak_rss_of_command(src: Path, tgt: Path, weights: Path) -> float:
+    """Peak RSS (MB) of a `byoc register` subprocess, via the child's rusage."""
+    code = (
+        "import sys; from byoc_cli.cli.main import cli; "
+        f"sys.argv=['byoc','register','{src}','{tgt}','--weights','{weights}','-o','/dev/null']; "
+        "cli()"
+    )
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    subprocess.run([sys.executable, "-c", code], check=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(before, after) / 1024.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("pair", nargs="*", type=Path,
+                        default=[SAMPLE / "cloud_bin_0.ply", SAMPLE / "cloud_bin_4.ply"])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    src_path, tgt_path = args.pair
+    src_np = read_point_cloud(src_path).points
+    tgt_np = read_point_cloud(tgt_path).points
+    src, tgt = torch.from_numpy(src_np), torch.from_numpy(tgt_np)
+    print(f"pair: {src_path.name} ({len(src_np)} pts) -> {tgt_path.name} ({len(tgt_np)} pts); "
+          f"torch threads {torch.get_num_threads()}; voxel {VOXEL} m; repeats {args.repeats}")
+
+    rows = [bench_byoc(arch, src, tgt, args.repeats) for arch in ("compact", "minkunet34c")]
+    o3d_5 = bench_open3d(src_np, tgt_np, 0.05, max(1, args.repeats // 2))
+    o3d_25 = bench_open3d(src_np, tgt_np, 0.025, max(1, args.repeats // 2))
+
+    print("\nbyoc register, in process (median seconds)")
+    print(f"{'encoder':<12}{'params':>10}{'voxels':>14}{'feat src':>10}{'feat tgt':>10}"
+          f"{'match':>8}{'fit':>8}{'register':>10}")
+    for r in rows:
+        print(f"{r['arch']:<12}{r['params']:>10,}{r['voxels_src']:>7}/{r['voxels_tgt']:<6}"
+              f"{r['features_src_s']:>10.3f}{r['features_tgt_s']:>10.3f}{r['match_s']:>8.3f}"
+              f"{r['fit_s']:>8.3f}{r['register_s']:>10.3f}")
+    print("\nOpen3D FPFH + RANSAC (mutual filter, 100k iterations, 0.999), median seconds")
+    for o in (o3d_5, o3d_25):
+        print(f"  voxel {o['voxel']:.3f} m: {o['register_s']:.3f} s")
+    compact = rows[0]["register_s"]
+    print("\nratios (Open3D time / byoc compact time; > 1 means byoc is faster)")
+    print(f"  vs FPFH+RANSAC at 2.5 cm: {o3d_25['register_s'] / compact:.2f}x")
+    print(f"  vs FPFH+RANSAC at 5 cm:   {o3d_5['register_s'] / compact:.2f}x")
+    print(f"  minkunet34c / compact register time: {rows[1]['register_s'] / compact:.2f}x")
+
+    try:
+        from sparse_conv import conv_vs_matmul  # benchmarks/sparse_conv.py
+
+        flops = conv_vs_matmul(src_np, channels=64)
+        print("\nsparse conv 3x3x3, 64 -> 64 channels, vs dense matmul")
+        print(json.dumps(flops, indent=2))
+    except ImportError as exc:
+        print(f"\nsparse conv benchmark unavailable: {exc}")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        weights = Path(tmp) / "compact.safetensors"
+        encoder, meta = init_weights("compact", seed=0)
+        save_weights(weights, encoder, meta)
+        rss = peak_rss_of_command(src_path, tgt_path, weights)
+    print(f"\npeak RSS of `byoc register` (compact, defaults): {rss:.0f} MB")
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    main()

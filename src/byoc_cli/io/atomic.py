@@ -1,0 +1,178 @@
+"""Atomic file writes: a file at ``path`` is either the old one or the complete new one.
+
+Every writer in byoc-cli (transforms, PLY files, JSON reports, checkpoints, weights) goes
+through :func:`atomic_write`: the data goes to a temporary file in the same directory, is
+flushed and fsynced, and only then renamed over ``path`` with :func:`os.replace` (atomic on
+POSIX and on Windows within one volume). On any exception the temporary file is removed and
+``path`` is left untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import stat
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+from byoc_cli.errors import InputError
+
+__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "write_errors"]
+
+_WRITE_MODES = {"w", "wt", "wb", "w+", "w+t", "w+b", "wb+", "wt+"}
+
+
+def _target(path: str | os.PathLike[str]) -> Path:
+    """The file that will be replaced: a symlink is written through, not replaced."""
+    path = Path(path)
+    if path.is_symlink():
+        return Path(os.path.realpath(path))
+    return path
+
+
+def _create_temp(target: Path) -> tuple[int, Path]:
+    """Create ``.<name>.<random>.tmp`` beside ``target``; returns ``(fd, temp_path)``.
+
+    ``os.open`` with mode 0o666 lets the process umask decide the permissions, as for a
+    file created by ``open()``; an existing target's permission bits are kept.
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        temp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.tmp")
+        try:
+            fd = os.open(temp, flags, 0o666)
+        except FileExistsError:
+            continue
+        try:
+            st = os.stat(target)
+        except OSError:
+            pass
+        else:
+            if stat.S_ISREG(st.st_mode):
+                with contextlib.suppress(OSError):
+                    os.chmod(temp, stat.S_IMODE(st.st_mode))
+        return fd, temp
+    raise FileExistsError(f"could not create a temporary file beside {target}")
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make the rename durable; silently skipped where directories cannot be fsynced."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _write_problem(exc: OSError) -> str:
+    if isinstance(exc, FileNotFoundError):
+        return "cannot write: the folder does not exist"
+    if isinstance(exc, PermissionError):
+        return "cannot write: permission denied"
+    if isinstance(exc, IsADirectoryError):
+        return "cannot write: is a directory"
+    return f"cannot write: {exc.strerror or exc}"
+
+
+@contextlib.contextmanager
+def write_errors(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Turn an ``OSError`` raised while writing ``path`` (disk full, I/O error) into
+    :class:`InputError` naming ``path``; use inside an :func:`atomic_write` block."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(path, _write_problem(exc)) from exc
+
+
+@contextlib.contextmanager
+def atomic_write(
+    path: str | os.PathLike[str],
+    mode: str = "wb",
+    *,
+    encoding: str | None = None,
+    newline: str | None = None,
+) -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on success it atomically replaces ``path``.
+
+    Usage::
+
+        with atomic_write(path, "w") as f:
+            f.write(text)
+
+    The temporary file (``.<name>.<random>.tmp`` in the same folder) is flushed, fsynced and
+    renamed over ``path`` when the block exits normally; when the block (or the flush) raises,
+    it is removed and ``path`` is left as it was, so nothing half-written is ever visible at
+    ``path``. A symlink at ``path`` is written through (its target is replaced). The new file
+    gets the permissions of the file it replaces, or those set by the umask.
+
+    Args:
+        path: the file to write.
+        mode: a write mode, ``"wb"`` (default) or ``"w"``/``"wt"`` for text.
+        encoding: text encoding for text modes (default UTF-8); must be None for binary.
+        newline: passed to :func:`open` for text modes.
+
+    Yields:
+        The open temporary file.
+
+    Raises:
+        ValueError: ``mode`` is not a write mode.
+        InputError: the file cannot be created or replaced (missing folder, permission
+            denied, ``path`` is a directory); the problem names ``path``.
+        Any exception raised inside the block is re-raised unchanged after cleanup.
+    """
+    if mode not in _WRITE_MODES:
+        raise ValueError(f"atomic_write needs a write mode ('w', 'wb', ...), got {mode!r}")
+    binary = "b" in mode
+    if binary and (encoding is not None or newline is not None):
+        raise ValueError("encoding and newline are for text modes only")
+    if not binary and encoding is None:
+        encoding = "utf-8"
+    target = _target(path)
+    try:
+        fd, temp = _create_temp(target)
+    except OSError as exc:
+        raise InputError(path, _write_problem(exc)) from exc
+    try:
+        with os.fdopen(fd, mode, encoding=encoding, newline=newline) as f:
+            yield f
+            try:
+                f.flush()
+                os.fsync(f.fileno())
+            except OSError as exc:  # disk full, quota, I/O error
+                raise InputError(path, _write_problem(exc)) from exc
+        try:
+            os.replace(temp, target)
+        except OSError as exc:
+            raise InputError(path, _write_problem(exc)) from exc
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temp)
+        raise
+    _fsync_directory(target.parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | bytearray | memoryview) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_write`).
+
+    Raises:
+        InputError: the file cannot be created or replaced.
+    """
+    with atomic_write(path, "wb") as f, write_errors(path):
+        f.write(data)
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str, encoding: str = "utf-8") -> None:
+    """Write ``text`` to ``path`` atomically (see :func:`atomic_write`).
+
+    Raises:
+        InputError: the file cannot be created or replaced.
+    """
+    with atomic_write(path, "w", encoding=encoding) as f, write_errors(path):
+        f.write(text)
