@@ -88,9 +88,18 @@ def bench_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, repeats: int) -
         t, ft = prep(tgt)
         dist = 1.5 * voxel
         return reg.registration_ransac_based_on_feature_matching(
-            s, t, fs, ft, True, dist, reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-             reg.CorrespondenceCheckerBasedOnDistance(dist)],
+            s,
+            t,
+            fs,
+            ft,
+            True,
+            dist,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [
+                reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                reg.CorrespondenceCheckerBasedOnDistance(dist),
+            ],
             reg.RANSACConvergenceCriteria(100000, 0.999),
         )
 
@@ -114,28 +123,38 @@ def peak_rss_of_command(src: Path, tgt: Path, weights: Path) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("pair", nargs="*", type=Path,
-                        default=[SAMPLE / "cloud_bin_0.ply", SAMPLE / "cloud_bin_4.ply"])
+    parser.add_argument(
+        "pair",
+        nargs="*",
+        type=Path,
+        default=[SAMPLE / "cloud_bin_0.ply", SAMPLE / "cloud_bin_4.ply"],
+    )
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     src_path, tgt_path = args.pair
     src_np = read_point_cloud(src_path).points
     tgt_np = read_point_cloud(tgt_path).points
     src, tgt = torch.from_numpy(src_np), torch.from_numpy(tgt_np)
-    print(f"pair: {src_path.name} ({len(src_np)} pts) -> {tgt_path.name} ({len(tgt_np)} pts); "
-          f"torch threads {torch.get_num_threads()}; voxel {VOXEL} m; repeats {args.repeats}")
+    print(
+        f"pair: {src_path.name} ({len(src_np)} pts) -> {tgt_path.name} ({len(tgt_np)} pts); "
+        f"torch threads {torch.get_num_threads()}; voxel {VOXEL} m; repeats {args.repeats}"
+    )
 
     rows = [bench_byoc(arch, src, tgt, args.repeats) for arch in ("compact", "minkunet34c")]
     o3d_5 = bench_open3d(src_np, tgt_np, 0.05, max(1, args.repeats // 2))
     o3d_25 = bench_open3d(src_np, tgt_np, 0.025, max(1, args.repeats // 2))
 
     print("\nbyoc register, in process (median seconds)")
-    print(f"{'encoder':<12}{'params':>10}{'voxels':>14}{'feat src':>10}{'feat tgt':>10}"
-          f"{'match':>8}{'fit':>8}{'register':>10}")
+    print(
+        f"{'encoder':<12}{'params':>10}{'voxels':>14}{'feat src':>10}{'feat tgt':>10}"
+        f"{'match':>8}{'fit':>8}{'register':>10}"
+    )
     for r in rows:
-        print(f"{r['arch']:<12}{r['params']:>10,}{r['voxels_src']:>7}/{r['voxels_tgt']:<6}"
-              f"{r['features_src_s']:>10.3f}{r['features_tgt_s']:>10.3f}{r['match_s']:>8.3f}"
-              f"{r['fit_s']:>8.3f}{r['register_s']:>10.3f}")
+        print(
+            f"{r['arch']:<12}{r['params']:>10,}{r['voxels_src']:>7}/{r['voxels_tgt']:<6}"
+            f"{r['features_src_s']:>10.3f}{r['features_tgt_s']:>10.3f}{r['match_s']:>8.3f}"
+            f"{r['fit_s']:>8.3f}{r['register_s']:>10.3f}"
+        )
     print("\nOpen3D FPFH + RANSAC (mutual filter, 100k iterations, 0.999), median seconds")
     for o in (o3d_5, o3d_25):
         print(f"  voxel {o['voxel']:.3f} m: {o['register_s']:.3f} s")

@@ -9,7 +9,9 @@ import pytest
 import torch
 
 SHARED_DATA = Path(
-    os.environ.get("BYOC_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
+    os.environ.get(
+        "BYOC_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    )
 )
 
 

@@ -66,8 +66,19 @@ def test_fpfh_registers_demo_pair(runner, demo, tmp_path):
     aligned = tmp_path / "aligned.ply"
     result = runner.invoke(
         cli,
-        ["register", str(demo / "source.ply"), str(demo / "target.ply"), "--features", "fpfh",
-         "-o", str(out), "--json", str(report), "--aligned", str(aligned)],
+        [
+            "register",
+            str(demo / "source.ply"),
+            str(demo / "target.ply"),
+            "--features",
+            "fpfh",
+            "-o",
+            str(out),
+            "--json",
+            str(report),
+            "--aligned",
+            str(aligned),
+        ],
     )
     assert result.exit_code == 0, result.output
     T = read_transform(out)
@@ -75,9 +86,19 @@ def test_fpfh_registers_demo_pair(runner, demo, tmp_path):
     assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 5.0
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.10
     data = json.loads(report.read_text())
-    for key in ("T_tgt_src", "num_correspondences", "num_inliers", "inlier_ratio", "overlap",
-                "confidence", "voxel_size_m", "seed", "timings_s", "weights_sha256",
-                "byoc_cli_version"):
+    for key in (
+        "T_tgt_src",
+        "num_correspondences",
+        "num_inliers",
+        "inlier_ratio",
+        "overlap",
+        "confidence",
+        "voxel_size_m",
+        "seed",
+        "timings_s",
+        "weights_sha256",
+        "byoc_cli_version",
+    ):
         assert key in data
     assert 0.0 <= data["confidence"] <= 1.0
     assert np.allclose(np.array(data["T_tgt_src"]), T)
@@ -89,13 +110,37 @@ def test_same_seed_byte_identical_and_stdout(runner, random_weights, tmp_path):
     outs = []
     for name in ("a.txt", "b.txt"):
         path = tmp_path / name
-        res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(random_weights),
-                                  "--seed", "7", "-o", str(path)])
+        res = runner.invoke(
+            cli,
+            [
+                "register",
+                str(src),
+                str(tgt),
+                "--weights",
+                str(random_weights),
+                "--seed",
+                "7",
+                "-o",
+                str(path),
+            ],
+        )
         assert res.exit_code == 0, res.output
         outs.append(path.read_bytes())
     assert outs[0] == outs[1]
-    res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(random_weights),
-                              "--seed", "7", "-o", "-"])
+    res = runner.invoke(
+        cli,
+        [
+            "register",
+            str(src),
+            str(tgt),
+            "--weights",
+            str(random_weights),
+            "--seed",
+            "7",
+            "-o",
+            "-",
+        ],
+    )
     assert res.exit_code == 0
     assert res.stdout.encode() == outs[0]  # stdout carries the matrix only
     assert len(res.stdout.strip().splitlines()) == 4
@@ -104,9 +149,24 @@ def test_same_seed_byte_identical_and_stdout(runner, random_weights, tmp_path):
 def test_ransac_estimator_and_icp_recover_synthetic(runner, tmp_path):
     src, tgt, T_gt = _synthetic_pair(tmp_path)
     out = tmp_path / "T.txt"
-    res = runner.invoke(cli, ["register", str(src), str(tgt), "--features", "fpfh",
-                              "--voxel-size", "0.05", "--estimator", "ransac", "--refine", "icp",
-                              "-o", str(out)])
+    res = runner.invoke(
+        cli,
+        [
+            "register",
+            str(src),
+            str(tgt),
+            "--features",
+            "fpfh",
+            "--voxel-size",
+            "0.05",
+            "--estimator",
+            "ransac",
+            "--refine",
+            "icp",
+            "-o",
+            str(out),
+        ],
+    )
     assert res.exit_code == 0, res.output
     T = read_transform(out)
     assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 2.0
@@ -116,8 +176,20 @@ def test_ransac_estimator_and_icp_recover_synthetic(runner, tmp_path):
 def test_confidence_gate_exit_3(runner, random_weights, tmp_path):
     src, tgt, _ = _synthetic_pair(tmp_path)
     out = tmp_path / "T.txt"
-    res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(random_weights),
-                              "--min-confidence", "1.0", "-o", str(out)])
+    res = runner.invoke(
+        cli,
+        [
+            "register",
+            str(src),
+            str(tgt),
+            "--weights",
+            str(random_weights),
+            "--min-confidence",
+            "1.0",
+            "-o",
+            str(out),
+        ],
+    )
     assert res.exit_code == 3
     assert "below --min-confidence" in res.stderr
     assert out.exists()  # registered: outputs are written, the exit code carries the verdict
@@ -133,10 +205,15 @@ BAD_INPUTS = {
     "garbage": (lambda d: _write(d / "g.ply", b"\x00\x01garbage" * 10), "PLY"),
     "empty_npy": (lambda d: (np.save(d / "e.npy", np.zeros((0, 3))), d / "e.npy")[1], "empty"),
     "wrong_shape": (lambda d: (np.save(d / "w.npy", np.zeros((5, 2))), d / "w.npy")[1], "(5, 2)"),
-    "all_nan": (lambda d: (np.save(d / "n.npy", np.full((9, 3), np.nan)), d / "n.npy")[1], "finite"),
+    "all_nan": (
+        lambda d: (np.save(d / "n.npy", np.full((9, 3), np.nan)), d / "n.npy")[1],
+        "finite",
+    ),
     "millimetres": (
-        lambda d: (np.save(d / "mm.npy", np.random.default_rng(0).uniform(0, 4000, (500, 3))),
-                   d / "mm.npy")[1],
+        lambda d: (
+            np.save(d / "mm.npy", np.random.default_rng(0).uniform(0, 4000, (500, 3))),
+            d / "mm.npy",
+        )[1],
         "--scale 0.001",
     ),
     "too_few": (lambda d: (np.save(d / "f.npy", np.zeros((2, 3))), d / "f.npy")[1], "voxel"),
@@ -150,8 +227,22 @@ def test_bad_input_exit_1_one_line_no_output(runner, tmp_path, case):
     bad = make(tmp_path)
     good, _, _ = _synthetic_pair(tmp_path)
     out, report, aligned = tmp_path / "T.txt", tmp_path / "r.json", tmp_path / "a.ply"
-    res = runner.invoke(cli, ["register", str(bad), str(good), "--features", "fpfh", "-o", str(out),
-                              "--json", str(report), "--aligned", str(aligned)])
+    res = runner.invoke(
+        cli,
+        [
+            "register",
+            str(bad),
+            str(good),
+            "--features",
+            "fpfh",
+            "-o",
+            str(out),
+            "--json",
+            str(report),
+            "--aligned",
+            str(aligned),
+        ],
+    )
     assert res.exit_code == 1, res.output
     lines = [ln for ln in res.stderr.splitlines() if ln.startswith("byoc: error")]
     assert len(lines) == 1, res.stderr
@@ -168,8 +259,18 @@ def test_nan_points_dropped_with_warning(runner, tmp_path):
     pts = read_point_cloud(src).points
     pts[:10] = np.nan
     np.save(tmp_path / "nan.npy", pts)
-    res = runner.invoke(cli, ["register", str(tmp_path / "nan.npy"), str(tgt), "--features", "fpfh",
-                              "-o", str(tmp_path / "T.txt")])
+    res = runner.invoke(
+        cli,
+        [
+            "register",
+            str(tmp_path / "nan.npy"),
+            str(tgt),
+            "--features",
+            "fpfh",
+            "-o",
+            str(tmp_path / "T.txt"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "dropped 10 point(s)" in res.stderr
 
@@ -181,9 +282,24 @@ def test_scale_option_returns_transform_in_input_units(runner, tmp_path):
     for name, path in (("src_mm.npy", src), ("tgt_mm.npy", tgt)):
         np.save(tmp_path / name, read_point_cloud(path).points * 1000.0)
     out = tmp_path / "T.txt"
-    res = runner.invoke(cli, ["register", str(tmp_path / "src_mm.npy"), str(tmp_path / "tgt_mm.npy"),
-                              "--features", "fpfh", "--voxel-size", "0.05", "--estimator", "ransac",
-                              "--scale", "0.001", "-o", str(out)])
+    res = runner.invoke(
+        cli,
+        [
+            "register",
+            str(tmp_path / "src_mm.npy"),
+            str(tmp_path / "tgt_mm.npy"),
+            "--features",
+            "fpfh",
+            "--voxel-size",
+            "0.05",
+            "--estimator",
+            "ransac",
+            "--scale",
+            "0.001",
+            "-o",
+            str(out),
+        ],
+    )
     assert res.exit_code == 0, res.output
     T = read_transform(out)
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3] * 1000.0) < 50.0  # millimetres
@@ -202,8 +318,9 @@ def test_usage_errors_exit_2(runner, tmp_path):
 def test_bad_weights_file_exit_1(runner, tmp_path):
     src, tgt, _ = _synthetic_pair(tmp_path)
     bad = _write(tmp_path / "w.safetensors", b"not weights at all")
-    res = runner.invoke(cli, ["register", str(src), str(tgt), "--weights", str(bad), "-o",
-                              str(tmp_path / "T.txt")])
+    res = runner.invoke(
+        cli, ["register", str(src), str(tgt), "--weights", str(bad), "-o", str(tmp_path / "T.txt")]
+    )
     assert res.exit_code == 1
     assert "w.safetensors" in res.stderr and "safetensors" in res.stderr
     assert not (tmp_path / "T.txt").exists()

@@ -38,7 +38,9 @@ def test_invert_and_compose_cancel(seed):
     torch.testing.assert_close(
         apply_transform(T_c_a, points_a), apply_transform(T_c_b, apply_transform(T_b_a, points_a))
     )
-    torch.testing.assert_close(compose(invert_transform(T_b_a), T_b_a), torch.eye(4, dtype=torch.float64))
+    torch.testing.assert_close(
+        compose(invert_transform(T_b_a), T_b_a), torch.eye(4, dtype=torch.float64)
+    )
     R = T_b_a[:3, :3]
     assert torch.linalg.det(R).item() == pytest.approx(1.0, abs=1e-12)
 
@@ -46,7 +48,9 @@ def test_invert_and_compose_cancel(seed):
 def test_rotation_error_known_angles():
     for deg in (0.0, 1e-4, 5.0, 90.0, 179.0):
         R = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(deg)], dtype=torch.float64))
-        assert rotation_error_deg(R, torch.eye(3, dtype=torch.float64)).item() == pytest.approx(deg, abs=1e-5)
+        assert rotation_error_deg(R, torch.eye(3, dtype=torch.float64)).item() == pytest.approx(
+            deg, abs=1e-5
+        )
 
 
 def test_translation_error():

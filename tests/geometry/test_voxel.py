@@ -10,7 +10,13 @@ from byoc_cli.geometry.voxel import near_occupied
 
 def test_first_point_per_voxel_hand_example():
     points = torch.tensor(
-        [[0.01, 0.01, 0.01], [0.30, 0.0, 0.0], [0.02, 0.03, 0.04], [-0.01, 0.0, 0.0], [0.31, 0.0, 0.0]]
+        [
+            [0.01, 0.01, 0.01],
+            [0.30, 0.0, 0.0],
+            [0.02, 0.03, 0.04],
+            [-0.01, 0.0, 0.0],
+            [0.31, 0.0, 0.0],
+        ]
     )
     grid = voxelize(points, 0.1)
     # voxels in order of first point: (0,0,0) <- 0, (3,0,0) <- 1, (-1,0,0) <- 3

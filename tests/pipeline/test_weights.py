@@ -43,7 +43,7 @@ def _rewrite(path: Path, out: Path, edit_meta=None, edit_tensors=None) -> Path:
 
 
 def test_round_trip_is_exact(saved):
-    path, encoder, meta = saved
+    path, encoder, _meta = saved
     loaded = load_weights(path)
     for name, value in encoder.state_dict().items():
         assert torch.equal(value, loaded.encoder.state_dict()[name]), name
@@ -66,7 +66,9 @@ def test_checksum_is_order_independent():
     a = {"x": torch.ones(2), "y": torch.zeros(3, dtype=torch.int64)}
     b = {"y": torch.zeros(3, dtype=torch.int64), "x": torch.ones(2)}
     assert tensors_sha256(a) == tensors_sha256(b)
-    assert tensors_sha256(a) != tensors_sha256({"x": torch.ones(2), "y": torch.ones(3, dtype=torch.int64)})
+    assert tensors_sha256(a) != tensors_sha256(
+        {"x": torch.ones(2), "y": torch.ones(3, dtype=torch.int64)}
+    )
 
 
 @pytest.mark.parametrize(
@@ -108,7 +110,11 @@ def test_refuses_wrong_tensor_set_even_with_valid_checksum(saved, tmp_path):
 
 @pytest.mark.parametrize(
     ("content", "phrase"),
-    [(b"", "too short"), (b"\xff" * 64, "bad header length"), (b"\x04\0\0\0\0\0\0\0abcd", "not JSON")],
+    [
+        (b"", "too short"),
+        (b"\xff" * 64, "bad header length"),
+        (b"\x04\0\0\0\0\0\0\0abcd", "not JSON"),
+    ],
 )
 def test_refuses_non_safetensors(tmp_path, content, phrase):
     path = tmp_path / "x.safetensors"

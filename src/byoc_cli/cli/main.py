@@ -48,7 +48,9 @@ def cli(verbose: int, quiet: bool) -> None:
     logs go to stderr. Exit codes: 0 success, 1 bad input or runtime error, 2 usage
     error, 3 registered below the confidence gate.
     """
-    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    level = (
+        logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    )
     logging.basicConfig(level=level, format="byoc: %(levelname)s: %(message)s", force=True)
     logging.captureWarnings(True)
 

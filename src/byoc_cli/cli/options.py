@@ -13,19 +13,30 @@ voxel_size_option = click.option(
     help="Voxel size in metres [default: the weights' voxel size (0.025) for byoc, 0.05 for fpfh].",
 )
 seed_option = click.option(
-    "--seed", type=click.IntRange(min=0), default=0, show_default=True,
+    "--seed",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
     help="Seeds every random choice; the same seed gives the same result.",
 )
 device_option = click.option(
-    "--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+    "--device",
+    type=click.Choice(["auto", "cpu", "cuda"]),
+    default="auto",
+    show_default=True,
     help="Where the encoder runs (auto: cuda when available).",
 )
 weights_option = click.option(
-    "--weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
+    "--weights",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
     help="Weights file (weights-spec/ format) for --features byoc.",
 )
 features_option = click.option(
-    "--features", type=click.Choice(["byoc", "fpfh"]), default="byoc", show_default=True,
+    "--features",
+    type=click.Choice(["byoc", "fpfh"]),
+    default="byoc",
+    show_default=True,
     help="byoc: the learned geometric encoder (needs --weights); fpfh: Open3D FPFH.",
 )
 

@@ -43,8 +43,9 @@ def _load_cloud(path: Path, intrinsics: Path | None, depth_scale: float, scale: 
     else:
         loaded = read_point_cloud(path)
     if loaded.num_nonfinite_dropped:
-        log.warning("%s: dropped %d point(s) with NaN/Inf coordinates", path,
-                    loaded.num_nonfinite_dropped)
+        log.warning(
+            "%s: dropped %d point(s) with NaN/Inf coordinates", path, loaded.num_nonfinite_dropped
+        )
     points = loaded.points
     if scale is None:
         check_units(points, path)
@@ -58,7 +59,7 @@ def _make_extractor(features: str, weights: Path | None, voxel_size: float | Non
     from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
 
     if features == "fpfh":
-        return FpfhExtractor(voxel_size or FEATURE_DEFAULTS['fpfh']['voxel_size']), None
+        return FpfhExtractor(voxel_size or FEATURE_DEFAULTS["fpfh"]["voxel_size"]), None
     from byoc_cli.pipeline.weights import load_weights
 
     path = weights or packaged_weights()
@@ -70,8 +71,11 @@ def _make_extractor(features: str, weights: Path | None, voxel_size: float | Non
     loaded = load_weights(path)
     trained_voxel = float(loaded.metadata["voxel_size"])
     if voxel_size is not None and abs(voxel_size - trained_voxel) > 1e-9:
-        log.warning("--voxel-size %g differs from the %g m the weights were trained at",
-                    voxel_size, trained_voxel)
+        log.warning(
+            "--voxel-size %g differs from the %g m the weights were trained at",
+            voxel_size,
+            trained_voxel,
+        )
     info = {
         "path": str(path),
         "sha256": loaded.file_sha256,
@@ -97,43 +101,108 @@ def _unscale(T, scale: float | None):
 )
 @click.argument("source", type=click.Path(path_type=Path))
 @click.argument("target", type=click.Path(path_type=Path))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
-              default=Path("-"), show_default=True,
-              help="Where to write T (4 lines of 4 numbers); '-' is stdout.")
-@click.option("--aligned", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write the source, transformed into the target frame, as binary PLY.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
-              default=None, help="Write a JSON report ('-' is stdout, then T goes only to -o).")
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    default=Path("-"),
+    show_default=True,
+    help="Where to write T (4 lines of 4 numbers); '-' is stdout.",
+)
+@click.option(
+    "--aligned",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write the source, transformed into the target frame, as binary PLY.",
+)
+@click.option(
+    "--json",
+    "json_path",
+    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    default=None,
+    help="Write a JSON report ('-' is stdout, then T goes only to -o).",
+)
 @features_option
 @weights_option
 @voxel_size_option
-@click.option("--estimator", type=click.Choice(["auto", "procrustes", "ransac"]), default="auto",
-              show_default=True, help="Randomized weighted Procrustes (the paper's) or RANSAC; "
-              "auto: procrustes for byoc features, ransac for fpfh.")
-@click.option("--refine", type=click.Choice(["none", "icp"]), default="none", show_default=True,
-              help="Refine with point-to-plane ICP (open3d).")
-@click.option("--max-points", type=click.IntRange(min=0), default=5000, show_default=True,
-              help="Seeded random subset of kept points per cloud that enters matching (0 = all).")
-@click.option("--num-correspondences", type=click.IntRange(min=3), default=None,
-              help="Top-k ratio-test matches kept per direction [default: 200 for byoc, "
-              "1000 for fpfh].")
-@click.option("--min-confidence", type=click.FloatRange(0, 1), default=0.0, show_default=True,
-              help="Exit 3 when the confidence is below this.")
-@click.option("--scale", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Multiply input coordinates by this (0.001 for millimetres); disables the "
-              "unit check. T is written in the input units.")
-@click.option("--intrinsics", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.")
-@click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True), default=1000.0,
-              show_default=True, help="Depth-image units per metre (1000 = mm, 5000 = TUM).")
+@click.option(
+    "--estimator",
+    type=click.Choice(["auto", "procrustes", "ransac"]),
+    default="auto",
+    show_default=True,
+    help="Randomized weighted Procrustes (the paper's) or RANSAC; "
+    "auto: procrustes for byoc features, ransac for fpfh.",
+)
+@click.option(
+    "--refine",
+    type=click.Choice(["none", "icp"]),
+    default="none",
+    show_default=True,
+    help="Refine with point-to-plane ICP (open3d).",
+)
+@click.option(
+    "--max-points",
+    type=click.IntRange(min=0),
+    default=5000,
+    show_default=True,
+    help="Seeded random subset of kept points per cloud that enters matching (0 = all).",
+)
+@click.option(
+    "--num-correspondences",
+    type=click.IntRange(min=3),
+    default=None,
+    help="Top-k ratio-test matches kept per direction [default: 200 for byoc, 1000 for fpfh].",
+)
+@click.option(
+    "--min-confidence",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="Exit 3 when the confidence is below this.",
+)
+@click.option(
+    "--scale",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Multiply input coordinates by this (0.001 for millimetres); disables the "
+    "unit check. T is written in the input units.",
+)
+@click.option(
+    "--intrinsics",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.",
+)
+@click.option(
+    "--depth-scale",
+    type=click.FloatRange(min=0, min_open=True),
+    default=1000.0,
+    show_default=True,
+    help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
+)
 @seed_option
 @device_option
 @handle_errors
-def register(source: Path, target: Path, output: Path, aligned: Path | None,
-             json_path: Path | None, features: str, weights: Path | None,
-             voxel_size: float | None, estimator: str, refine: str, max_points: int,
-             num_correspondences: int | None, min_confidence: float, scale: float | None,
-             intrinsics: Path | None, depth_scale: float, seed: int, device: str) -> None:
+def register(
+    source: Path,
+    target: Path,
+    output: Path,
+    aligned: Path | None,
+    json_path: Path | None,
+    features: str,
+    weights: Path | None,
+    voxel_size: float | None,
+    estimator: str,
+    refine: str,
+    max_points: int,
+    num_correspondences: int | None,
+    min_confidence: float,
+    scale: float | None,
+    intrinsics: Path | None,
+    depth_scale: float,
+    seed: int,
+    device: str,
+) -> None:
     """Register SOURCE onto TARGET and write T, the 4x4 transform that maps SOURCE into
     TARGET's frame: x_tgt = R x_src + t (column vectors; T = [[R, t], [0, 0, 0, 1]]).
 
@@ -165,8 +234,11 @@ def register(source: Path, target: Path, output: Path, aligned: Path | None,
     points_tgt = _load_cloud(target, intrinsics, depth_scale, scale)
     load_time = time.perf_counter() - t0
     config = RegisterConfig(
-        num_correspondences=num_correspondences, max_points=max_points, estimator=estimator,
-        refine=None if refine == "none" else "icp", seed=seed,
+        num_correspondences=num_correspondences,
+        max_points=max_points,
+        estimator=estimator,
+        refine=None if refine == "none" else "icp",
+        seed=seed,
     )
     result = register_clouds(points_src, points_tgt, extractor, config)
     T = _unscale(result.T_tgt_src, scale)
@@ -220,11 +292,18 @@ def register(source: Path, target: Path, output: Path, aligned: Path | None,
         for path in written:
             path.unlink(missing_ok=True)
         raise
-    log.info("registered %s -> %s: confidence %.3f, %d/%d inliers, %.2f s", source, target,
-             result.confidence, result.num_inliers, result.num_correspondences,
-             timings["command"])
+    log.info(
+        "registered %s -> %s: confidence %.3f, %d/%d inliers, %.2f s",
+        source,
+        target,
+        result.confidence,
+        result.num_inliers,
+        result.num_correspondences,
+        timings["command"],
+    )
     if not passed:
-        click.echo(f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
-                   f"{min_confidence}", err=True)
+        click.echo(
+            f"byoc: confidence {result.confidence:.3f} is below --min-confidence {min_confidence}",
+            err=True,
+        )
         raise SystemExit(EXIT_LOW_CONFIDENCE)
-

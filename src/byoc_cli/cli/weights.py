@@ -32,8 +32,13 @@ def info(path: Path) -> None:
 @weights.command("init")
 @click.option("--arch", default="compact", show_default=True, help="Encoder architecture name.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
-@click.option("--voxel-size", type=click.FloatRange(min=0, min_open=True), default=0.025,
-              show_default=True, help="Voxel size (m) recorded in the metadata.")
+@click.option(
+    "--voxel-size",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.025,
+    show_default=True,
+    help="Voxel size (m) recorded in the metadata.",
+)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True)
 @handle_errors
 def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:

@@ -35,7 +35,9 @@ def make_transform(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         ``(..., 4, 4)`` transform with the same dtype and device as ``R``.
     """
     if R.shape[-2:] != (3, 3) or t.shape[-1] != 3:
-        raise ShapeError(f"R must be (..., 3, 3) and t (..., 3), got {tuple(R.shape)}, {tuple(t.shape)}")
+        raise ShapeError(
+            f"R must be (..., 3, 3) and t (..., 3), got {tuple(R.shape)}, {tuple(t.shape)}"
+        )
     batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
     T = R.new_zeros(*batch, 4, 4)
     T[..., :3, :3] = R

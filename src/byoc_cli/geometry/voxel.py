@@ -81,7 +81,9 @@ def _neighbour_offsets(device: torch.device) -> torch.Tensor:
     return torch.cartesian_prod(r, r, r)
 
 
-def near_occupied(points_query: torch.Tensor, points_ref: torch.Tensor, cell: float) -> torch.Tensor:
+def near_occupied(
+    points_query: torch.Tensor, points_ref: torch.Tensor, cell: float
+) -> torch.Tensor:
     """Which query points lie in or next to a cell occupied by a reference point.
 
     Both clouds are quantised at ``cell``; a query point counts when one of the 27 cells

@@ -30,7 +30,7 @@ class CloudFeatures(NamedTuple):
     Attributes:
         points: ``(M, 3)`` float64 kept points (original xyz of the first point per voxel).
         feats: ``(M, C)`` float32 L2-normalised features, ``feats[m]`` describes ``points[m]``.
-        point_index: ``(M,)`` int64; ``point_index[m] = i`` means ``points[m]`` is input point ``i``.
+        point_index: ``(M,)`` int64; ``points[m]`` is input point ``point_index[m]``.
         coords: ``(M, 3)`` int64 voxel coordinates.
     """
 

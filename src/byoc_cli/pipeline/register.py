@@ -120,8 +120,12 @@ def estimate_transform(
     timer = _Timer()
     start = time.perf_counter()
     generator = torch.Generator().manual_seed(config.seed)
-    points_src, feats_src = _subset(src, sample_subset(len(src.points), config.max_points, generator))
-    points_tgt, feats_tgt = _subset(tgt, sample_subset(len(tgt.points), config.max_points, generator))
+    points_src, feats_src = _subset(
+        src, sample_subset(len(src.points), config.max_points, generator)
+    )
+    points_tgt, feats_tgt = _subset(
+        tgt, sample_subset(len(tgt.points), config.max_points, generator)
+    )
     corr = ratio_test_correspondences(
         feats_src, feats_tgt, k=config.num_correspondences, chunk_size=config.chunk_size
     )
@@ -135,13 +139,21 @@ def estimate_transform(
     threshold = config.inlier_factor * voxel_size
     if config.estimator == "procrustes":
         fit = randomized_procrustes(
-            p, q, w, num_subsets=config.num_subsets, subset_size=config.subset_size,
+            p,
+            q,
+            w,
+            num_subsets=config.num_subsets,
+            subset_size=config.subset_size,
             generator=generator,
         )
     else:
         fit = ransac(
-            p, q, inlier_threshold=threshold, max_iterations=config.ransac_iterations,
-            confidence=config.ransac_confidence, generator=generator,
+            p,
+            q,
+            inlier_threshold=threshold,
+            max_iterations=config.ransac_iterations,
+            confidence=config.ransac_confidence,
+            generator=generator,
         )
     T = fit.T_tgt_src.to(torch.float64)
     start = timer("fit", start)
@@ -182,7 +194,10 @@ def refine_icp(
     tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_tgt.double().numpy()))
     tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30))
     out = reg.registration_icp(
-        src, tgt, max_distance, T_init.double().numpy(),
+        src,
+        tgt,
+        max_distance,
+        T_init.double().numpy(),
         reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(max_iteration=50),
     )

@@ -147,8 +147,9 @@ def validate_metadata(path: str | Path, meta: Any) -> EncoderConfig:
     version = meta.get("format_version")
     if isinstance(version, int) and version > FORMAT_VERSION:
         raise WeightsError(
-            path, f"format version {version} is newer than this byoc-cli supports "
-            f"({FORMAT_VERSION}); upgrade byoc-cli"
+            path,
+            f"format version {version} is newer than this byoc-cli supports "
+            f"({FORMAT_VERSION}); upgrade byoc-cli",
         )
     for key, kind in _REQUIRED.items():
         if key not in meta:

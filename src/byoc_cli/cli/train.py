@@ -1,0 +1,353 @@
+"""``byoc train``: learn registration features from RGB-D (or depth-only) video, no poses."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import click
+
+from byoc_cli.cli.errors import handle_errors
+
+log = logging.getLogger("byoc")
+
+_PATH = click.Path(path_type=Path)
+
+
+def _fmt(value: float | None, spec: str = ".4f") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return format(value, spec)
+
+
+class _Display:
+    """Progress on stderr: a rich bar (default) or plain log lines (``--quiet``)."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.progress = None
+        self.task = None
+
+    def __enter__(self) -> _Display:
+        if not self.quiet:
+            from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+
+            self.progress = Progress(
+                TextColumn("[bold]train"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[losses]}"),
+                TextColumn("{task.fields[rate]} steps/s"),
+                TimeElapsedColumn(),
+                TextColumn("ETA"),
+                TimeRemainingColumn(),
+                console=Console(stderr=True),
+                transient=False,
+            )
+            self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.progress is not None:
+            self.progress.__exit__(*exc)
+
+    def echo(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress.console.print(text, markup=False, highlight=False)
+        else:
+            click.echo(f"byoc: {text}", err=True)
+
+    # callbacks ---------------------------------------------------------------
+    def on_start(self, step: int, total: int) -> None:
+        if self.progress is not None:
+            self.task = self.progress.add_task(
+                "train", total=total, completed=step, losses="", rate="-"
+            )
+        else:
+            self.echo(f"training from step {step} to {total}")
+
+    def on_step(self, info) -> None:
+        if self.progress is None or self.task is None:
+            return
+        parts = [f"loss {info.losses['loss']:.4f}"]
+        for key in ("vis", "geo", "v2g"):
+            value = info.losses[f"loss_{key}"]
+            if value:
+                parts.append(f"{key} {value:.4f}")
+        self.progress.update(
+            self.task, completed=info.step, losses=" ".join(parts), rate=f"{info.steps_per_s:.2f}"
+        )
+
+    def on_log(self, record: dict) -> None:
+        if self.quiet:
+            terms = " ".join(
+                f"{k.removeprefix('loss_')} {_fmt(record.get(k))}"
+                for k in ("loss_vis", "loss_geo", "loss_v2g")
+                if record.get(k)
+            )
+            self.echo(
+                f"step {record['step']}: loss {_fmt(record['loss'])} {terms} "
+                f"({_fmt(record.get('steps_per_s'), '.2f')} steps/s)"
+            )
+
+    def on_validation(self, step: int, metrics: dict) -> None:
+        self.echo(
+            f"validation at step {step} ({int(metrics.get('num_pairs', 0))} pairs): rotation "
+            f"{_fmt(metrics['rot_acc_5'], '.1f')}/{_fmt(metrics['rot_acc_10'], '.1f')}/"
+            f"{_fmt(metrics['rot_acc_45'], '.1f')}% at 5/10/45 deg, median "
+            f"{_fmt(metrics['rot_median_deg'], '.2f')} deg; translation "
+            f"{_fmt(metrics['trans_acc_5'], '.1f')}/{_fmt(metrics['trans_acc_10'], '.1f')}/"
+            f"{_fmt(metrics['trans_acc_25'], '.1f')}% at 5/10/25 cm, median "
+            f"{_fmt(metrics['trans_median_cm'], '.1f')} cm"
+        )
+
+    def on_checkpoint(self, step: int, path: Path) -> None:
+        if self.quiet:
+            self.echo(f"checkpoint {path}")
+
+
+def _explicit(ctx: click.Context, values: dict[str, Any]) -> dict[str, Any]:
+    """Flags given on the command line (or in the environment), by config key."""
+    from click.core import ParameterSource
+
+    out = {}
+    for key, value in values.items():
+        source = ctx.get_parameter_source(key)
+        if (
+            source in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
+            and value is not None
+        ):
+            if isinstance(value, tuple) and not value:
+                continue
+            if isinstance(value, Path):
+                value = str(value)
+            elif isinstance(value, tuple):
+                value = tuple(str(v) for v in value)
+            out[key] = value
+    return out
+
+
+@click.command(
+    "train",
+    epilog="Settings: built-in defaults < --config FILE (TOML, same key names with "
+    "underscores) < flags. Exit codes: 0 trained; 1 bad data or runtime error; 2 usage error. "
+    "Multi-process: torchrun --nproc-per-node N -m byoc_cli.cli.main train ...",
+)
+@click.option(
+    "--rgbd-dir",
+    multiple=True,
+    type=_PATH,
+    help="RGB-D video folder(s) to train on (TUM, 3DMatch/7-Scenes, ScanNet, Redwood "
+    "layouts); repeat for several. No poses needed.",
+)
+@click.option(
+    "--val-dir",
+    multiple=True,
+    type=_PATH,
+    help="Video folder(s) with poses for validation (geometric encoder only).",
+)
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="TOML file of settings (keys as in config.json).",
+)
+@click.option("--out", type=_PATH, default=None, help="Run folder [default: runs/byoc].")
+@click.option(
+    "--resume",
+    type=_PATH,
+    default=None,
+    help="Continue the run in this folder exactly from its newest checkpoint.",
+)
+@click.option(
+    "--variant",
+    type=click.Choice(["byoc", "byoc-geo", "byoc-vis", "byoc-rot"]),
+    default=None,
+    help="Model variant [default: byoc].",
+)
+@click.option(
+    "--arch", default=None, help="Geometric encoder: compact | minkunet34c [default: compact]."
+)
+@click.option(
+    "--steps", type=click.IntRange(min=1), default=None, help="Optimiser steps [default: 200000]."
+)
+@click.option(
+    "--batch-size",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Pairs per step over all processes [default: 8].",
+)
+@click.option(
+    "--lr",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Adam learning rate [default: 1e-4].",
+)
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="[default: 8]")
+@click.option(
+    "--device",
+    type=click.Choice(["auto", "cpu", "cuda"]),
+    default=None,
+    help="[default: auto, cuda when available]",
+)
+@click.option(
+    "--view-spacing",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Frames between the views of a training pair [default: 20].",
+)
+@click.option(
+    "--val-spacing",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Frames between validation frames [default: 20].",
+)
+@click.option(
+    "--val-every",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Validate every N steps, 0 = never [default: 5000].",
+)
+@click.option(
+    "--val-max-pairs",
+    type=click.IntRange(min=0),
+    default=None,
+    help="At most N validation pairs, evenly spread, 0 = all [default: 0].",
+)
+@click.option(
+    "--checkpoint-every",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Checkpoint every N steps (and at the end) [default: 1000].",
+)
+@click.option(
+    "--log-every",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Metrics line every N steps [default: 10].",
+)
+@click.option(
+    "--num-workers",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Data-loading worker processes [default: 2].",
+)
+@click.option(
+    "--voxel-size",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Voxel size in metres [default: 0.025].",
+)
+@click.option(
+    "--intrinsics",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Intrinsics file for folders that ship none.",
+)
+@click.option(
+    "--depth-scale",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Depth units per metre [default: the layout's convention].",
+)
+@click.option(
+    "--amp/--no-amp",
+    default=None,
+    help="Mixed precision (bfloat16) for the encoders on CUDA [default: on with CUDA].",
+)
+@click.option(
+    "--deterministic/--no-deterministic",
+    default=None,
+    help="Deterministic kernels (bit-exact resume; slower) [default: on for CPU].",
+)
+@click.option("--quiet", is_flag=True, help="Plain log lines instead of a progress bar.")
+@click.pass_context
+@handle_errors
+def train(
+    ctx: click.Context, config_path: Path | None, resume: Path | None, quiet: bool, **flags: Any
+) -> None:
+    """Train BYOC on RGB-D video without poses and export weights for
+    ``byoc register --weights RUN/weights.safetensors``.
+
+    Writes RUN/config.json, RUN/metrics.jsonl, RUN/checkpoints/, RUN/training.png and
+    RUN/weights.safetensors; prints the weights path and SHA-256 on stdout.
+    """
+    from byoc_cli.cli.options import resolve_device
+    from byoc_cli.training.config import load_config_file, resolve_config
+    from byoc_cli.training.distributed import init_distributed, shutdown
+    from byoc_cli.training.trainer import TrainCallbacks, resume_config
+    from byoc_cli.training.trainer import train as run_training
+
+    explicit = _explicit(ctx, flags)
+    try:
+        if resume is not None:
+            if config_path is not None:
+                raise click.UsageError(
+                    "--config cannot be combined with --resume (the run's config.json is used)"
+                )
+            if "out" in explicit and Path(explicit["out"]) != resume:
+                raise click.UsageError("--out cannot differ from --resume")
+            config = resume_config(resume, explicit)
+        else:
+            file_values = load_config_file(config_path) if config_path is not None else None
+            config = resolve_config(file_values, explicit)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from exc
+    if not config.rgbd_dir:
+        raise click.UsageError("no training data: give --rgbd-dir (or rgbd_dir in --config)")
+    if config.arch:
+        from byoc_cli.models.encoder import ENCODER_CONFIGS
+
+        if config.arch not in ENCODER_CONFIGS:
+            raise click.BadParameter(
+                f"unknown architecture {config.arch!r} "
+                f"(known: {', '.join(sorted(ENCODER_CONFIGS))})",
+                param_hint="'--arch'",
+            )
+    resolve_device(config.device)  # usage error when cuda is asked for and absent
+
+    info = init_distributed(config.device)
+    try:
+        display = _Display(quiet or not info.is_main)
+        with display:
+            callbacks = TrainCallbacks(
+                on_start=display.on_start,
+                on_step=display.on_step,
+                on_log=display.on_log,
+                on_validation=display.on_validation,
+                on_checkpoint=display.on_checkpoint,
+            )
+            result = run_training(config, resume=resume is not None, callbacks=callbacks, info=info)
+    finally:
+        shutdown(info)
+    if info.is_main:
+        log.info(
+            "trained %d steps; loss %s -> %s",
+            result.steps,
+            _fmt(result.first_loss),
+            _fmt(result.last_loss),
+        )
+        click.echo(
+            f"byoc: trained {result.steps} steps in {result.run_dir}: loss "
+            f"{_fmt(result.first_loss)} -> {_fmt(result.last_loss)}",
+            err=True,
+        )
+        if result.validation:
+            click.echo(
+                "byoc: validation rot@5deg "
+                f"{_fmt(result.initial_validation.get('rot_acc_5'), '.1f')}% "
+                f"(start) -> {_fmt(result.validation.get('rot_acc_5'), '.1f')}% (end)",
+                err=True,
+            )
+        click.echo(f"{result.weights_path}\t{result.weights_sha256}")

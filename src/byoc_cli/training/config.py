@@ -1,0 +1,270 @@
+"""Training configuration: defaults < TOML config file < explicit command-line flags.
+
+The key names of :class:`TrainConfig` are public API (TOML files, ``config.json`` in a run
+folder); an unknown key is refused with the closest known spelling.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from byoc_cli.errors import InputError
+
+VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot")
+#: variants with a visual branch (need colour images)
+VISUAL_VARIANTS = ("byoc", "byoc-vis", "byoc-rot")
+#: variants with a geometric branch
+GEOMETRIC_VARIANTS = ("byoc", "byoc-geo", "byoc-rot")
+
+#: keys that may change when a run is resumed; every other key is fixed by the run
+RESUMABLE_KEYS = frozenset(
+    {
+        "steps",
+        "val_every",
+        "checkpoint_every",
+        "num_workers",
+        "log_every",
+        "device",
+        "amp",
+        "keep_checkpoints",
+        "val_dir",
+        "deterministic",
+        "val_spacing",
+        "val_max_pairs",
+    }
+)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Every setting of a training run (method.md sections 1, 6, 7).
+
+    Attributes:
+        rgbd_dir: training video folders (each may hold several sequences).
+        val_dir: validation video folders with poses (empty: no validation).
+        out: the run folder.
+        variant: ``byoc``, ``byoc-geo``, ``byoc-vis`` or ``byoc-rot``.
+        arch: geometric encoder architecture name (``compact`` or ``minkunet34c``).
+        steps: optimiser steps in all.
+        batch_size: pairs per step, over all processes.
+        lr, adam_eps, weight_decay: Adam (constant learning rate).
+        seed: seeds initialisation, data order and augmentation.
+        view_spacing: frames between the two views of a training pair.
+        val_spacing: frames between consecutive validation frames.
+        val_every, checkpoint_every, log_every: intervals in steps (0 = never, except the end).
+        val_max_pairs: at most this many validation pairs, evenly spread (0 = all).
+        num_workers: data-loading worker processes per training process.
+        device: ``auto``, ``cpu`` or ``cuda``.
+        amp: mixed precision for the encoders on CUDA (None = on where CUDA is used).
+        deterministic: deterministic kernels (``torch.use_deterministic_algorithms``), needed
+            for bit-exact resume with several CPU threads; None = on for CPU, off for CUDA.
+        voxel_size: geometric voxel size in metres.
+        num_correspondences: top-k ratio-test matches per direction.
+        image_size: side of the square crop fed to the encoders.
+        intrinsics: intrinsics file for folders that ship none (None = discover).
+        depth_scale: depth units per metre (None = the layout's convention).
+        rot_max_angle_deg, rot_max_translation: byoc-rot augmentation ranges.
+        keep_checkpoints: how many most recent checkpoints to keep.
+    """
+
+    rgbd_dir: tuple[str, ...] = ()
+    val_dir: tuple[str, ...] = ()
+    out: str = "runs/byoc"
+    variant: str = "byoc"
+    arch: str = "compact"
+    steps: int = 200_000
+    batch_size: int = 8
+    lr: float = 1e-4
+    adam_eps: float = 1e-4
+    weight_decay: float = 1e-6
+    seed: int = 8
+    view_spacing: int = 20
+    val_spacing: int = 20
+    val_every: int = 5000
+    checkpoint_every: int = 1000
+    log_every: int = 10
+    val_max_pairs: int = 0
+    num_workers: int = 2
+    device: str = "auto"
+    amp: bool | None = None
+    deterministic: bool | None = None
+    voxel_size: float = 0.025
+    num_correspondences: int = 200
+    image_size: int = 128
+    intrinsics: str | None = None
+    depth_scale: float | None = None
+    rot_max_angle_deg: float = 80.0
+    rot_max_translation: float = 0.5
+    keep_checkpoints: int = 2
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.variant not in VARIANTS:
+            problems.append(f"variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
+        for name in (
+            "steps",
+            "batch_size",
+            "view_spacing",
+            "val_spacing",
+            "num_correspondences",
+            "image_size",
+            "keep_checkpoints",
+        ):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in (
+            "val_every",
+            "checkpoint_every",
+            "log_every",
+            "val_max_pairs",
+            "num_workers",
+            "seed",
+        ):
+            if getattr(self, name) < 0:
+                problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("lr", "adam_eps", "voxel_size"):
+            if not getattr(self, name) > 0:
+                problems.append(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.weight_decay < 0:
+            problems.append(f"weight_decay must be >= 0, got {self.weight_decay}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            problems.append(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if problems:
+            raise ValueError("; ".join(problems))
+
+    @property
+    def uses_visual(self) -> bool:
+        return self.variant in VISUAL_VARIANTS
+
+    @property
+    def uses_geometric(self) -> bool:
+        return self.variant in GEOMETRIC_VARIANTS
+
+    def to_dict(self) -> dict[str, Any]:
+        """The public keys and their values (JSON-ready)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = list(value) if isinstance(value, tuple) else value
+        return out
+
+
+def config_keys() -> list[str]:
+    """The public configuration keys, in declaration order."""
+    return [f.name for f in dataclasses.fields(TrainConfig)]
+
+
+_TUPLE_KEYS = ("rgbd_dir", "val_dir")
+
+
+def _coerce(key: str, value: Any, source: object) -> Any:
+    if key in _TUPLE_KEYS:
+        if isinstance(value, str):
+            return (value,)
+        if isinstance(value, list | tuple) and all(isinstance(v, str) for v in value):
+            return tuple(value)
+        raise InputError(source, f"'{key}' must be a path or a list of paths")
+    ref = TrainConfig.__dataclass_fields__[key].default
+    if isinstance(ref, bool) or key in ("amp", "deterministic"):
+        if value is None or isinstance(value, bool):
+            return value
+        raise InputError(source, f"'{key}' must be true or false")
+    if isinstance(ref, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(source, f"'{key}' must be an integer, got {value!r}")
+        return value
+    if isinstance(ref, float) or key == "depth_scale":
+        if value is None and key == "depth_scale":
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise InputError(source, f"'{key}' must be a number, got {value!r}")
+        return float(value)
+    if value is not None and not isinstance(value, str):
+        raise InputError(source, f"'{key}' must be a string, got {value!r}")
+    return value
+
+
+def check_keys(values: dict[str, Any], source: object) -> dict[str, Any]:
+    """Validate key names and value types of a mapping of settings.
+
+    Raises:
+        InputError: an unknown key (with the closest known spelling) or a wrong type.
+    """
+    known = config_keys()
+    out = {}
+    for key, value in values.items():
+        if key not in known:
+            close = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise InputError(source, f"unknown config key '{key}'{hint}")
+        out[key] = _coerce(key, value, source)
+    return out
+
+
+def load_config_file(path: str | Path) -> dict[str, Any]:
+    """Read a TOML config (keys at the top level or under ``[train]``).
+
+    Relative paths in ``rgbd_dir``, ``val_dir``, ``out`` and ``intrinsics`` stay relative
+    to the working directory (like the flags).
+
+    Raises:
+        InputError: missing, unreadable or invalid file, unknown key, wrong type.
+    """
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise InputError(path, "no such file") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read ({exc})") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, f"not valid TOML ({exc})") from exc
+    if set(raw) == {"train"} and isinstance(raw["train"], dict):
+        raw = raw["train"]
+    return check_keys(raw, path)
+
+
+def resolve_config(
+    file_values: dict[str, Any] | None = None, flag_values: dict[str, Any] | None = None
+) -> TrainConfig:
+    """Merge settings: dataclass defaults < config file < explicit flags.
+
+    Args:
+        file_values: from :func:`load_config_file` (or None).
+        flag_values: flags the user gave explicitly; ``None`` values are ignored.
+
+    Returns:
+        The effective :class:`TrainConfig`.
+
+    Raises:
+        InputError: unknown key; ValueError: an out-of-range value.
+    """
+    merged: dict[str, Any] = {}
+    merged.update(file_values or {})
+    merged.update(
+        check_keys({k: v for k, v in (flag_values or {}).items() if v is not None}, "command line")
+    )
+    return TrainConfig(**merged)
+
+
+def config_from_json(path: str | Path) -> TrainConfig:
+    """Read the ``config.json`` of a run folder back.
+
+    Raises:
+        InputError: missing or malformed file.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise InputError(path, "no such file (not a run folder?)") from exc
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"cannot read run config ({exc})") from exc
+    values = data.get("config", data)
+    return TrainConfig(**check_keys(values, path))

@@ -1,0 +1,100 @@
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from byoc_cli.cli.main import cli
+
+
+def _run(args):
+    return CliRunner().invoke(cli, ["train", *args])
+
+
+def test_help_lists_the_options():
+    result = _run(["--help"])
+    assert result.exit_code == 0
+    for flag in (
+        "--rgbd-dir",
+        "--view-spacing",
+        "--num-workers",
+        "--steps",
+        "--batch-size",
+        "--lr",
+        "--seed",
+        "--device",
+        "--arch",
+        "--variant",
+        "--val-every",
+        "--checkpoint-every",
+        "--out",
+        "--config",
+        "--resume",
+        "--quiet",
+        "--val-dir",
+    ):
+        assert flag in result.output
+
+
+def test_missing_rgbd_dir_is_exit_1_naming_the_folder(tmp_path):
+    missing = tmp_path / "no_such_scans"
+    result = _run(["--rgbd-dir", str(missing), "--out", str(tmp_path / "run")])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("byoc: error:") and str(missing) in lines[0]
+
+
+def test_empty_rgbd_dir_is_exit_1(tmp_path):
+    (tmp_path / "empty").mkdir()
+    result = _run(["--rgbd-dir", str(tmp_path / "empty"), "--out", str(tmp_path / "run")])
+    assert result.exit_code == 1
+    assert str(tmp_path / "empty") in result.stderr
+
+
+def test_no_data_is_usage_error():
+    assert _run([]).exit_code == 2
+
+
+def test_bad_variant_is_usage_error(tmp_path):
+    assert _run(["--rgbd-dir", str(tmp_path), "--variant", "nope"]).exit_code == 2
+
+
+def test_misspelled_config_key_is_exit_1(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("num_correspodances = 100\n")
+    result = _run(["--config", str(cfg), "--rgbd-dir", str(tmp_path)])
+    assert result.exit_code == 1
+    assert "num_correspondences" in result.stderr and str(cfg) in result.stderr
+
+
+def test_resume_of_a_non_run_is_exit_1(tmp_path):
+    result = _run(["--resume", str(tmp_path / "nope")])
+    assert result.exit_code == 1 and str(tmp_path / "nope") in result.stderr
+
+
+@pytest.mark.slow
+def test_config_precedence_end_to_end(shared_data, tmp_path):
+    cfg = tmp_path / "c.toml"
+    data = shared_data / "rgbd" / "tum_fr1_xyz"
+    cfg.write_text(
+        f'rgbd_dir = "{data}"\nsteps = 2\nlr = 0.001\nbatch_size = 2\n'
+        'view_spacing = 2\nval_every = 0\nnum_workers = 0\nvariant = "byoc-geo"\n'
+    )
+    run = tmp_path / "run"
+    result = _run(
+        ["--config", str(cfg), "--lr", "0.0005", "--out", str(run), "--quiet", "--device", "cpu"]
+    )
+    assert result.exit_code == 0, result.stderr
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["config"]["lr"] == 0.0005 and saved["config"]["steps"] == 2
+    assert saved["config"]["seed"] == 8 and "byoc_cli_version" in saved
+    assert (run / "training.png").stat().st_size > 0
+    assert result.stdout.strip().split("\t")[0] == str(run / "weights.safetensors")
+    # the weights work with byoc register
+    from byoc_cli.pipeline.weights import load_weights
+
+    meta = load_weights(run / "weights.safetensors").metadata
+    assert meta["training"]["variant"] == "byoc-geo" and meta["training"]["steps"] == 2
+    assert meta["training"]["seed"] == 8
+    # a second training into the same folder is refused
+    again = _run(["--config", str(cfg), "--out", str(run), "--quiet", "--device", "cpu"])
+    assert again.exit_code == 1 and "--resume" in again.stderr
