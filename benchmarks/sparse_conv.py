@@ -59,42 +59,32 @@ def interleaved_medians(functions: dict, repeats: int) -> dict[str, float]:
     return {name: statistics.median(t) for name, t in times.items()}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--ply", type=Path, default=DEFAULT_PLY)
-    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    parser.add_argument("--repeats", type=int, default=21)
-    parser.add_argument("--encoder-repeats", type=int, default=7)
-    args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
+def conv_vs_matmul(voxels: torch.Tensor, channels: int = CHANNELS, repeats: int = 21) -> dict:
+    """Useful FLOP/s of a ``channels -> channels`` submanifold 3x3x3 conv vs dense matmuls.
 
-    voxels = load_voxels(args.ply)
+    Args:
+        voxels: ``(N, 3)`` int64 voxel coordinates of one cloud.
+        channels: input and output width.
+        repeats: interleaved repeats; medians are reported.
+
+    Returns:
+        dict with the active pair count, median milliseconds, GFLOP/s and the ratios
+        ``sparse / dense_pairs`` (the bar's comparison) and ``sparse / dense_sites``.
+    """
     n = voxels.shape[0]
     coords = torch.cat([voxels.new_zeros(n, 1), voxels], dim=1)
-    print(f"cloud: {args.ply.name}, {n} voxels at {VOXEL_SIZE} m")
-    threads, load = torch.get_num_threads(), os.getloadavg()[0]
-    print(f"torch {torch.__version__}, {threads} threads, load average {load:.2f}")
-    if load > 0.5 * (os.cpu_count() or 1):
-        print(
-            "warning: busy machine, timings are unreliable (with OpenMP's default busy "
-            "waiting every parallel region may cost a time slice: try OMP_WAIT_POLICY=PASSIVE)"
-        )
-
+    gen = torch.Generator().manual_seed(0)
     kmap = CoordinateManager(coords).submanifold_map(1, 3)
     pairs = kmap.num_pairs
-    flops = 2 * pairs * CHANNELS * CHANNELS
-    print(f"submanifold 3x3x3 map: {pairs} active pairs ({pairs / n:.2f} per site of 27)")
-
-    feats = torch.randn(n, CHANNELS)
-    weight = torch.randn(27, CHANNELS, CHANNELS) / CHANNELS**0.5
-    dense_pairs = torch.randn(pairs, CHANNELS)
-    dense_sites = torch.randn(n, CHANNELS)
-    matrix = torch.randn(CHANNELS, CHANNELS)
-    out_pairs = torch.empty(pairs, CHANNELS)
-    out_sites = torch.empty(n, CHANNELS)
-    site_blocks = round(pairs / n)
+    flops = 2 * pairs * channels * channels
+    feats = torch.randn(n, channels, generator=gen)
+    weight = torch.randn(27, channels, channels, generator=gen) / channels**0.5
+    dense_pairs = torch.randn(pairs, channels, generator=gen)
+    dense_sites = torch.randn(n, channels, generator=gen)
+    matrix = torch.randn(channels, channels, generator=gen)
+    out_pairs = torch.empty(pairs, channels)
+    out_sites = torch.empty(n, channels)
+    site_blocks = max(1, round(pairs / n))
 
     def dense_by_sites() -> None:
         for _ in range(site_blocks):
@@ -108,22 +98,65 @@ def main() -> None:
                 "dense_sites": dense_by_sites,
                 "map": lambda: CoordinateManager(coords).submanifold_map(1, 3),
             },
-            args.repeats,
+            repeats,
         )
     sparse_rate = flops / t["sparse"] / 1e9
     pairs_rate = flops / t["dense_pairs"] / 1e9
-    sites_rate = 2 * site_blocks * n * CHANNELS**2 / t["dense_sites"] / 1e9
-    ms = {name: seconds * 1e3 for name, seconds in t.items()}
-    print(f"sparse conv 64->64: {ms['sparse']:7.2f} ms  {sparse_rate:6.1f} useful GFLOP/s")
+    sites_rate = 2 * site_blocks * n * channels**2 / t["dense_sites"] / 1e9
+    return {
+        "sites": int(n),
+        "active_pairs": int(pairs),
+        "site_blocks": int(site_blocks),
+        "sparse_ms": t["sparse"] * 1e3,
+        "dense_pairs_ms": t["dense_pairs"] * 1e3,
+        "dense_sites_ms": t["dense_sites"] * 1e3,
+        "map_ms": t["map"] * 1e3,
+        "sparse_gflops": sparse_rate,
+        "dense_pairs_gflops": pairs_rate,
+        "dense_sites_gflops": sites_rate,
+        "ratio_pairs": sparse_rate / pairs_rate,
+        "ratio_sites": sparse_rate / sites_rate,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ply", type=Path, default=DEFAULT_PLY)
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    parser.add_argument("--repeats", type=int, default=21)
+    parser.add_argument("--encoder-repeats", type=int, default=7)
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+
+    voxels = load_voxels(args.ply)
+    n = voxels.shape[0]
+    print(f"cloud: {args.ply.name}, {n} voxels at {VOXEL_SIZE} m")
+    threads, load = torch.get_num_threads(), os.getloadavg()[0]
+    print(f"torch {torch.__version__}, {threads} threads, load average {load:.2f}")
+    if load > 0.5 * (os.cpu_count() or 1):
+        print(
+            "warning: busy machine, timings are unreliable (with OpenMP's default busy "
+            "waiting every parallel region may cost a time slice: try OMP_WAIT_POLICY=PASSIVE)"
+        )
+
+    res = conv_vs_matmul(voxels, CHANNELS, args.repeats)
+    pairs = res["active_pairs"]
+    print(f"submanifold 3x3x3 map: {pairs} active pairs ({pairs / n:.2f} per site of 27)")
     print(
-        f"dense ({pairs}, 64) @ (64, 64): {ms['dense_pairs']:7.2f} ms  {pairs_rate:6.1f} GFLOP/s"
-        f"  -> ratio {sparse_rate / pairs_rate:.2f} (bar 0.40)"
+        f"sparse conv 64->64: {res['sparse_ms']:7.2f} ms  "
+        f"{res['sparse_gflops']:6.1f} useful GFLOP/s"
     )
     print(
-        f"dense {site_blocks} x ({n}, 64) @ (64, 64): {ms['dense_sites']:7.2f} ms  "
-        f"{sites_rate:6.1f} GFLOP/s  -> ratio {sparse_rate / sites_rate:.2f}"
+        f"dense ({pairs}, 64) @ (64, 64): {res['dense_pairs_ms']:7.2f} ms  "
+        f"{res['dense_pairs_gflops']:6.1f} GFLOP/s  -> ratio {res['ratio_pairs']:.2f} (bar 0.40)"
     )
-    print(f"kernel map build (3x3x3, stride 1): {ms['map']:.2f} ms")
+    print(
+        f"dense {res['site_blocks']} x ({n}, 64) @ (64, 64): {res['dense_sites_ms']:7.2f} ms  "
+        f"{res['dense_sites_gflops']:6.1f} GFLOP/s  -> ratio {res['ratio_sites']:.2f}"
+    )
+    print(f"kernel map build (3x3x3, stride 1): {res['map_ms']:.2f} ms")
 
     encoders = {}
     for arch in ("compact", "minkunet34c"):
