@@ -330,3 +330,35 @@ def test_help_states_convention(runner):
     res = runner.invoke(cli, ["register", "--help"])
     assert res.exit_code == 0
     assert "x_tgt = R x_src + t" in res.output
+
+
+@pytest.mark.realdata
+def test_depth_images_with_intrinsics_register_real_tum_frames(runner, shared_data, tmp_path):
+    """Two real TUM depth PNGs (fr3 cabinet keyframes 0 and 1) + intrinsics.json -> T_gt."""
+    from byoc_cli.io.rgbd import discover_sequences
+
+    root = shared_data / "rgbd" / "tum_fr3_cabinet"
+    seq = discover_sequences(root)[0]
+    src, tgt = seq.frames[1], seq.frames[0]
+    T_gt = np.linalg.inv(tgt.pose) @ src.pose  # camera 1 -> camera 0
+    out = tmp_path / "T.txt"
+    result = runner.invoke(
+        cli,
+        [
+            "register",
+            str(src.depth_path),
+            str(tgt.depth_path),
+            "--features",
+            "fpfh",
+            "--intrinsics",
+            str(root / "intrinsics.json"),
+            "--depth-scale",
+            "5000",
+            "-o",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    T = read_transform(out)
+    assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 5.0
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.10
