@@ -98,3 +98,68 @@ def test_config_precedence_end_to_end(shared_data, tmp_path):
     # a second training into the same folder is refused
     again = _run(["--config", str(cfg), "--out", str(run), "--quiet", "--device", "cpu"])
     assert again.exit_code == 1 and "--resume" in again.stderr
+
+
+def test_sigterm_checkpoints_the_last_step_and_resume_finishes(shared_data, tmp_path):
+    """SIGTERM (a scheduler's stop) loses nothing: a checkpoint of the last finished step."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    run = tmp_path / "run"
+    args = [
+        "--rgbd-dir",
+        str(shared_data / "rgbd" / "tum_fr1_desk"),
+        "--variant",
+        "byoc-geo",
+        "--steps",
+        "1000",
+        "--batch-size",
+        "1",
+        "--view-spacing",
+        "2",
+        "--checkpoint-every",
+        "0",
+        "--val-every",
+        "0",
+        "--log-every",
+        "1",
+        "--num-workers",
+        "0",
+        "--device",
+        "cpu",
+        "--quiet",
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "byoc_cli.cli.main", "train"]
+    proc = subprocess.Popen(
+        [*command, *args, "--out", str(run)],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        env=env,
+    )
+    metrics = run / "metrics.jsonl"
+    deadline = time.time() + 300
+    while not (metrics.exists() and metrics.read_text().count('"train"') >= 2):
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert time.time() < deadline
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    saved = sorted((run / "checkpoints").glob("step-*.pt"))
+    assert saved, err.decode()
+    step = int(saved[-1].stem.split("-")[1])
+    assert step >= 2
+    assert not (run / "weights.safetensors").exists()
+
+    done = subprocess.run(
+        [*command, "--resume", str(run), "--steps", str(step + 1), "--quiet"],
+        capture_output=True,
+        env=env,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr.decode()
+    assert (run / "weights.safetensors").exists()

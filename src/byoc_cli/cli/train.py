@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -135,6 +137,20 @@ def _explicit(ctx: click.Context, values: dict[str, Any]) -> dict[str, Any]:
                 value = tuple(str(v) for v in value)
             out[key] = value
     return out
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _interrupt_on_sigterm() -> None:
+    """Let SIGTERM (a scheduler, ``kill``) end training as Ctrl-C does: checkpoint, then stop.
+
+    Under torchrun the launcher owns the workers' signals and no checkpoint is written on
+    interruption (ranks could disagree on the step); the last periodic checkpoint stands.
+    """
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_interrupt)
 
 
 @click.command(
@@ -318,6 +334,8 @@ def train(
     resolve_device(config.device)  # usage error when cuda is asked for and absent
 
     info = init_distributed(config.device)
+    if not info.distributed:
+        _interrupt_on_sigterm()
     try:
         display = _Display(quiet or not info.is_main)
         with display:
