@@ -1046,7 +1046,9 @@ def preprocess_frame(
     side = min(height, width)
     x0, y0 = (width - side) // 2, (height - side) // 2
 
-    src = np.minimum(((np.arange(size) + 0.5) * (side / size)).astype(np.int64), side - 1)
+    # floor((k + 0.5) * side / size) in exact integer arithmetic: a centre that lands on a
+    # source pixel's edge belongs to that pixel (floating point could round it to the left)
+    src = np.minimum((2 * np.arange(size, dtype=np.int64) + 1) * side // (2 * size), side - 1)
     depth = depth_m[y0 + src[:, None], x0 + src[None, :]].astype(np.float32)
     with np.errstate(invalid="ignore"):
         depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
