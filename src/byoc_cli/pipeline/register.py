@@ -183,23 +183,44 @@ def estimate_transform(
 
 
 def refine_icp(
-    points_src: torch.Tensor, points_tgt: torch.Tensor, T_init: torch.Tensor, max_distance: float
+    points_src: torch.Tensor,
+    points_tgt: torch.Tensor,
+    T_init: torch.Tensor,
+    max_distance: float,
+    *,
+    point_to_plane: bool = True,
+    max_iteration: int = 50,
 ) -> torch.Tensor:
-    """Point-to-plane ICP (open3d) from ``T_init``; returns the refined ``T_tgt_src``."""
+    """ICP (open3d) from ``T_init``; returns the refined ``T_tgt_src``.
+
+    Args:
+        points_src, points_tgt: ``(N, 3)`` and ``(M, 3)`` points.
+        T_init: ``(4, 4)`` initial ``T_tgt_src``.
+        max_distance: largest correspondence distance, in the units of the points.
+        point_to_plane: point-to-plane (target normals from 30 neighbours within
+            ``2 * max_distance``); False: point-to-point.
+        max_iteration: ICP iterations at most.
+    """
     from byoc_cli.errors import require_open3d
 
     o3d = require_open3d()
     reg = o3d.pipelines.registration
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_src.double().numpy()))
     tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_tgt.double().numpy()))
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30))
+    if point_to_plane:
+        tgt.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30)
+        )
+        estimation = reg.TransformationEstimationPointToPlane()
+    else:
+        estimation = reg.TransformationEstimationPointToPoint()
     out = reg.registration_icp(
         src,
         tgt,
         max_distance,
         T_init.double().numpy(),
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(max_iteration=50),
+        estimation,
+        reg.ICPConvergenceCriteria(max_iteration=max_iteration),
     )
     return torch.from_numpy(out.transformation.copy()).to(torch.float64)
 

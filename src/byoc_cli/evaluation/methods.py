@@ -1,0 +1,359 @@
+"""The registration methods compared side by side, and how their features are made.
+
+Method names (``--method``):
+
+``byoc``
+    The learned geometric encoder (``--weights``; without weights a seeded random ``compact``
+    encoder, reported as ``random-init``), voxel size from the weights (2.5 cm), ratio-test
+    top 200 correspondences per direction, randomized Procrustes (100 subsets of 20): the
+    paper's test-time pipeline.
+``fpfh-ransac``
+    Open3D FPFH at a 5 cm voxel, top 1000 per direction, correspondence RANSAC (inlier
+    threshold 2 voxels, at most 100k iterations, confidence 0.999): ``byoc register
+    --features fpfh`` defaults.
+``fpfh-procrustes``
+    The same FPFH features with the paper's pipeline (top 200, randomized Procrustes).
+``icp-point`` / ``icp-plane``
+    Open3D point-to-point / point-to-plane ICP from the identity on clouds voxelised at
+    2.5 cm, correspondences up to :data:`ICP_MAX_DISTANCE` (10 cm), 50 iterations.
+``identity``
+    ``T = I``: the motion of the pair itself, a floor for every method.
+
+Feature methods use a seeded random subset of 5000 kept points per cloud, as ``byoc
+register``. A registration that raises (e.g. fewer than 3 correspondences) returns the
+identity and is counted as failed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+from byoc_cli.errors import RegistrationError
+from byoc_cli.geometry import voxelize
+from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
+from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
+
+__all__ = [
+    "DEFAULT_ARCH",
+    "FPFH_VOXEL_SIZE",
+    "ICP_MAX_DISTANCE",
+    "ICP_VOXEL_SIZE",
+    "METHOD_NAMES",
+    "FeatureSpec",
+    "Method",
+    "MethodOutput",
+    "build_methods",
+    "feature_specs",
+    "icp_points",
+    "parse_method_names",
+]
+
+#: Every method name ``--method`` accepts, in table order.
+METHOD_NAMES = ("byoc", "fpfh-ransac", "fpfh-procrustes", "icp-point", "icp-plane", "identity")
+#: FPFH voxel size (m): Open3D's tutorial value, as ``byoc register --features fpfh``.
+FPFH_VOXEL_SIZE = 0.05
+#: ICP input voxel size (m).
+ICP_VOXEL_SIZE = 0.025
+#: ICP's largest correspondence distance (m).
+ICP_MAX_DISTANCE = 0.10
+#: ICP iterations at most.
+ICP_MAX_ITERATION = 50
+#: Architecture of the random encoder used for ``byoc`` without weights.
+DEFAULT_ARCH = "compact"
+
+_SETTINGS = {
+    "byoc": {"estimator": "procrustes", "num_correspondences": 200},
+    "fpfh-ransac": {"estimator": "ransac", "num_correspondences": 1000},
+    "fpfh-procrustes": {"estimator": "procrustes", "num_correspondences": 200},
+}
+
+
+@dataclass
+class FeatureSpec:
+    """A feature extractor and its identity (for the cache and the report).
+
+    Attributes:
+        key: short unique label within a run (``byoc``, ``byoc[name]``, ``fpfh``).
+        extractor: computes :class:`CloudFeatures` from ``points (N, 3)``.
+        identity: JSON-able settings that determine the features (extractor name, voxel
+            size, weights hash, radii).
+        info: JSON-able description for the report (weights file, source).
+    """
+
+    key: str
+    extractor: FeatureExtractor
+    identity: dict[str, Any]
+    info: dict[str, Any]
+
+    @property
+    def voxel_size(self) -> float:
+        """The extractor's voxel size (m)."""
+        return float(self.extractor.voxel_size)
+
+
+class MethodOutput(NamedTuple):
+    """One registration.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64 estimate (identity when ``failed``).
+        failed: the method raised; ``error`` says why.
+        error: the message, or None.
+    """
+
+    T_tgt_src: torch.Tensor
+    failed: bool
+    error: str | None
+
+
+@dataclass
+class Method:
+    """One column of the comparison.
+
+    Attributes:
+        name: column label (``byoc``, ``byoc[name]``, ``fpfh-ransac``, ...).
+        kind: one of :data:`METHOD_NAMES`.
+        features: the feature spec (None for ICP and identity).
+        config: registration settings of feature methods (``seed`` is set per pair).
+        icp_distance: ICP's correspondence distance (m), ICP methods only.
+    """
+
+    name: str
+    kind: str
+    features: FeatureSpec | None = None
+    config: RegisterConfig | None = None
+    icp_distance: float | None = None
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-able settings of the method."""
+        out: dict[str, Any] = {"name": self.name, "kind": self.kind}
+        if self.features is not None:
+            out["features"] = {"key": self.features.key, **self.features.identity}
+            out["features_info"] = self.features.info
+        if self.config is not None:
+            out["estimator"] = self.config.estimator
+            out["num_correspondences_per_direction"] = self.config.num_correspondences
+            out["max_points"] = self.config.max_points
+            if self.config.estimator == "procrustes":
+                out["num_subsets"] = self.config.num_subsets
+                out["subset_size"] = self.config.subset_size
+            else:
+                out["ransac_inlier_threshold_m"] = (
+                    self.config.inlier_factor * self.features.voxel_size
+                )
+                out["ransac_max_iterations"] = self.config.ransac_iterations
+                out["ransac_confidence"] = self.config.ransac_confidence
+        if self.kind.startswith("icp"):
+            out["icp"] = {
+                "estimation": "point-to-plane" if self.kind == "icp-plane" else "point-to-point",
+                "init": "identity",
+                "voxel_size_m": ICP_VOXEL_SIZE,
+                "max_correspondence_distance_m": self.icp_distance,
+                "max_iteration": ICP_MAX_ITERATION,
+            }
+        return out
+
+    def register(
+        self,
+        points_src: torch.Tensor | None,
+        points_tgt: torch.Tensor | None,
+        feats: tuple[CloudFeatures, CloudFeatures] | None,
+        seed: int,
+    ) -> MethodOutput:
+        """Estimate ``T_tgt_src`` for one pair.
+
+        Args:
+            points_src, points_tgt: ``(N, 3)`` / ``(M, 3)`` clouds (metres), needed by ICP;
+                ICP methods take clouds already voxelised with :func:`icp_points`.
+            feats: ``(source, target)`` features, needed by feature methods.
+            seed: seeds the subset and the estimator.
+
+        Returns:
+            :class:`MethodOutput`.
+        """
+        eye = torch.eye(4, dtype=torch.float64)
+        try:
+            if self.kind == "identity":
+                return MethodOutput(eye, False, None)
+            if self.kind in ("icp-point", "icp-plane"):
+                T = refine_icp(
+                    points_src,
+                    points_tgt,
+                    eye,
+                    self.icp_distance,
+                    point_to_plane=self.kind == "icp-plane",
+                    max_iteration=ICP_MAX_ITERATION,
+                )
+                return MethodOutput(T, False, None)
+            config = dataclasses.replace(self.config, seed=seed)
+            result = estimate_transform(feats[0], feats[1], config, self.features.voxel_size)
+            return MethodOutput(result.T_tgt_src.to(torch.float64), False, None)
+        except RegistrationError as exc:
+            return MethodOutput(eye, True, str(exc))
+
+
+def icp_points(points: torch.Tensor) -> torch.Tensor:
+    """The ICP input: ``points (N, 3)`` voxelised at :data:`ICP_VOXEL_SIZE` (first point)."""
+    grid = voxelize(points, ICP_VOXEL_SIZE)
+    return points[grid.point_index].to(torch.float64)
+
+
+def parse_method_names(values: Sequence[str]) -> list[str]:
+    """Split ``values`` on commas and whitespace, check the names, drop repeats (keep order).
+
+    Raises:
+        ValueError: an unknown name (the message lists the known ones) or no name at all.
+    """
+    names: list[str] = []
+    for value in values:
+        for part in value.replace(",", " ").split():
+            if part not in METHOD_NAMES:
+                raise ValueError(f"unknown method {part!r} (known: {', '.join(METHOD_NAMES)})")
+            if part not in names:
+                names.append(part)
+    if not names:
+        raise ValueError(f"no method given (known: {', '.join(METHOD_NAMES)})")
+    return names
+
+
+def _byoc_specs(weights: Sequence[Path], seed: int, device: str) -> list[FeatureSpec]:
+    from byoc_cli.pipeline.features import ByocExtractor
+    from byoc_cli.pipeline.weights import init_weights, load_weights, tensors_sha256
+
+    if not weights:
+        encoder, meta = init_weights(DEFAULT_ARCH, seed)
+        digest = tensors_sha256(
+            {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}
+        )
+        voxel = float(meta["voxel_size"])
+        return [
+            FeatureSpec(
+                key="byoc",
+                extractor=ByocExtractor(encoder, voxel, device),
+                identity={
+                    "extractor": "byoc",
+                    "voxel_size": voxel,
+                    "weights": "random-init",
+                    "architecture": DEFAULT_ARCH,
+                    "tensors_sha256": digest,
+                },
+                info={
+                    "source": "random-init",
+                    "note": f"no --weights: a random {DEFAULT_ARCH} encoder seeded with {seed} "
+                    "(random geometric features, not trained ones)",
+                    "architecture": DEFAULT_ARCH,
+                    "seed": seed,
+                },
+            )
+        ]
+    stems = [Path(w).stem for w in weights]
+    specs = []
+    for index, path in enumerate(weights):
+        loaded = load_weights(path)
+        voxel = float(loaded.metadata["voxel_size"])
+        label = stems[index] if stems.count(stems[index]) == 1 else f"{stems[index]}#{index + 1}"
+        specs.append(
+            FeatureSpec(
+                key="byoc" if len(weights) == 1 else f"byoc[{label}]",
+                extractor=ByocExtractor(loaded.encoder, voxel, device),
+                identity={
+                    "extractor": "byoc",
+                    "voxel_size": voxel,
+                    "weights": "file",
+                    "architecture": loaded.metadata["architecture"],
+                    "tensors_sha256": loaded.metadata["tensors_sha256"],
+                },
+                info={
+                    "source": "file",
+                    "path": str(path),
+                    "file_sha256": loaded.file_sha256,
+                    "variant": loaded.metadata["training"]["variant"],
+                    "steps": loaded.metadata["training"]["steps"],
+                    "architecture": loaded.metadata["architecture"],
+                },
+            )
+        )
+    return specs
+
+
+def _fpfh_spec(voxel_size: float) -> FeatureSpec:
+    from byoc_cli.pipeline import features as F
+
+    return FeatureSpec(
+        key="fpfh",
+        extractor=F.FpfhExtractor(voxel_size),
+        identity={
+            "extractor": "fpfh",
+            "voxel_size": float(voxel_size),
+            "normal_radius": F.FPFH_NORMAL_RADIUS,
+            "feature_radius": F.FPFH_FEATURE_RADIUS,
+            "normal_max_nn": F.FPFH_NORMAL_MAX_NN,
+            "feature_max_nn": F.FPFH_FEATURE_MAX_NN,
+        },
+        info={"source": "open3d", "voxel_size": float(voxel_size)},
+    )
+
+
+def build_methods(
+    names: Sequence[str],
+    weights: Sequence[Path] = (),
+    *,
+    seed: int = 0,
+    device: str = "cpu",
+    fpfh_voxel_size: float = FPFH_VOXEL_SIZE,
+    icp_distance: float = ICP_MAX_DISTANCE,
+    max_points: int = 5000,
+) -> list[Method]:
+    """Build the method columns.
+
+    ``byoc`` becomes one column per weights file (``byoc[stem]`` when there are several);
+    the FPFH methods share one feature spec.
+
+    Args:
+        names: method names (see :data:`METHOD_NAMES`), already parsed.
+        weights: weights files for ``byoc`` (none: a random encoder seeded with ``seed``).
+        seed: seed of the random encoder.
+        device: where the encoder runs.
+        fpfh_voxel_size: FPFH voxel size (m).
+        icp_distance: ICP correspondence distance (m).
+        max_points: points per cloud entering matching.
+
+    Returns:
+        The methods in the order of ``names``.
+
+    Raises:
+        WeightsError: a weights file is unusable.
+        ValueError: an unknown name.
+    """
+    methods: list[Method] = []
+    fpfh: FeatureSpec | None = None
+    for name in names:
+        if name == "byoc":
+            for spec in _byoc_specs(weights, seed, device):
+                config = RegisterConfig(max_points=max_points, **_SETTINGS["byoc"])
+                methods.append(Method(spec.key, "byoc", spec, config))
+        elif name in ("fpfh-ransac", "fpfh-procrustes"):
+            fpfh = fpfh or _fpfh_spec(fpfh_voxel_size)
+            config = RegisterConfig(max_points=max_points, **_SETTINGS[name])
+            methods.append(Method(name, name, fpfh, config))
+        elif name in ("icp-point", "icp-plane"):
+            methods.append(Method(name, name, icp_distance=icp_distance))
+        elif name == "identity":
+            methods.append(Method(name, name))
+        else:
+            raise ValueError(f"unknown method {name!r} (known: {', '.join(METHOD_NAMES)})")
+    return methods
+
+
+def feature_specs(methods: Sequence[Method]) -> list[FeatureSpec]:
+    """The distinct feature specs of ``methods``, in first-use order."""
+    out: list[FeatureSpec] = []
+    for method in methods:
+        if method.features is not None and all(method.features is not s for s in out):
+            out.append(method.features)
+    return out
