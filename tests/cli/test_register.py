@@ -362,3 +362,21 @@ def test_depth_images_with_intrinsics_register_real_tum_frames(runner, shared_da
     T = read_transform(out)
     assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 5.0
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.10
+
+
+@pytest.mark.parametrize(
+    ("features", "expected"),
+    [("fpfh", (10000, "ransac", 2000)), ("byoc", (5000, "procrustes", 400))],
+)
+def test_per_feature_defaults_are_reported(runner, random_weights, tmp_path, features, expected):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    report = tmp_path / "r.json"
+    args = ["register", str(src), str(tgt), "--features", features, "--json", str(report)]
+    if features == "byoc":
+        args += ["--weights", str(random_weights)]
+    result = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt")])
+    assert result.exit_code in (0, 3), result.output
+    r = json.loads(report.read_text())
+    max_points, estimator, most_correspondences = expected
+    assert (r["max_points"], r["estimator"]) == (max_points, estimator)
+    assert 3 <= r["num_correspondences"] <= most_correspondences
