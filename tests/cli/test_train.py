@@ -100,6 +100,56 @@ def test_config_precedence_end_to_end(shared_data, tmp_path):
     assert again.exit_code == 1 and "--resume" in again.stderr
 
 
+@pytest.mark.slow
+def test_validation_on_posed_video_is_logged_plotted_and_summarised(shared_data, tmp_path):
+    run = tmp_path / "run"
+    result = _run(
+        [
+            "--rgbd-dir",
+            str(shared_data / "rgbd" / "tum_fr1_desk"),
+            "--val-dir",
+            str(shared_data / "rgbd" / "tum_fr1_xyz"),
+            "--val-spacing",
+            "3",
+            "--val-every",
+            "1",
+            "--variant",
+            "byoc-geo",
+            "--steps",
+            "2",
+            "--batch-size",
+            "2",
+            "--view-spacing",
+            "2",
+            "--num-workers",
+            "0",
+            "--device",
+            "cpu",
+            "--out",
+            str(run),
+            "--quiet",
+        ]
+    )
+    assert result.exit_code == 0, result.stderr
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    val = [r for r in records if r["kind"] == "val"]
+    # before the first step (the random encoder), then after each step
+    assert [r["step"] for r in val] == [0, 1, 2]
+    for r in val:
+        assert r["num_pairs"] == 3  # frames 0, 3, 6, 9 of tum_fr1_xyz
+        for key in ("rot_acc_5", "rot_median_deg", "trans_acc_25", "inlier_pct_mean", "corr_fmr"):
+            assert 0.0 <= r[key] < 1e4, key
+    assert "validation at step 2 (3 pairs)" in result.stderr
+    assert "inlier correspondences" in result.stderr
+    summary = [line for line in result.stderr.splitlines() if "validation rot@5deg" in line]
+    assert len(summary) == 1 and "(start) ->" in summary[0]
+    from byoc_cli.pipeline.weights import load_weights
+
+    meta = load_weights(run / "weights.safetensors").metadata
+    assert meta["training"]["metrics"]["val_rot_acc_5"] == val[-1]["rot_acc_5"]
+    assert "val_inlier_pct_mean" in meta["training"]["metrics"]
+
+
 def test_sigterm_checkpoints_the_last_step_and_resume_finishes(shared_data, tmp_path):
     """SIGTERM (a scheduler's stop) loses nothing: a checkpoint of the last finished step."""
     import os

@@ -110,7 +110,8 @@ class _Display:
             f"{_fmt(metrics['rot_median_deg'], '.2f')} deg; translation "
             f"{_fmt(metrics['trans_acc_5'], '.1f')}/{_fmt(metrics['trans_acc_10'], '.1f')}/"
             f"{_fmt(metrics['trans_acc_25'], '.1f')}% at 5/10/25 cm, median "
-            f"{_fmt(metrics['trans_median_cm'], '.1f')} cm"
+            f"{_fmt(metrics['trans_median_cm'], '.1f')} cm; inlier correspondences "
+            f"{_fmt(metrics.get('inlier_pct_mean'), '.1f')}%"
         )
 
     def on_checkpoint(self, step: int, path: Path) -> None:
@@ -365,7 +366,9 @@ def train(
             click.echo(
                 "byoc: validation rot@5deg "
                 f"{_fmt(result.initial_validation.get('rot_acc_5'), '.1f')}% "
-                f"(start) -> {_fmt(result.validation.get('rot_acc_5'), '.1f')}% (end)",
+                f"(start) -> {_fmt(result.validation.get('rot_acc_5'), '.1f')}% (end); inlier "
+                f"correspondences {_fmt(result.initial_validation.get('inlier_pct_mean'), '.1f')}% "
+                f"-> {_fmt(result.validation.get('inlier_pct_mean'), '.1f')}%",
                 err=True,
             )
         click.echo(f"{result.weights_path}\t{result.weights_sha256}")

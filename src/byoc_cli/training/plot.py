@@ -36,7 +36,7 @@ def plot_metrics(records: list[dict[str, Any]], path: str | Path, title: str = "
 
     Args:
         records: metric records (``kind`` ``"train"`` with ``loss*`` keys, ``"val"`` with
-            ``rot_acc_*``/``trans_acc_*`` keys).
+            ``rot_acc_*``/``trans_acc_*``/``inlier_pct_mean`` keys).
         path: PNG to write (atomically).
         title: figure title.
 
@@ -63,7 +63,7 @@ def plot_metrics(records: list[dict[str, Any]], path: str | Path, title: str = "
     ax_loss.set_title("training losses")
     if ax_loss.lines:
         ax_loss.legend()
-    for key in ("rot_acc_5", "rot_acc_10", "trans_acc_5", "trans_acc_10"):
+    for key in ("rot_acc_5", "rot_acc_10", "trans_acc_5", "trans_acc_10", "inlier_pct_mean"):
         pts = [(r["step"], r[key]) for r in val if r.get(key) is not None]
         if pts:
             ax_val.plot(*zip(*pts, strict=True), marker="o", label=key)

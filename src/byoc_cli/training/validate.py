@@ -4,6 +4,12 @@ The test-time pipeline (method.md 8): the kept points of each view (voxelised, f
 per voxel), their geometric features, ratio-test top-200 correspondences per direction and
 randomized Procrustes (100 subsets of 20). Source = view 1, target = view 0; the
 estimate is compared with ``T_gt = inv(T_world_cam_i) @ T_world_cam_j``.
+
+Besides the pose errors, validation measures the features themselves: the share of the
+400 correspondences that are inliers under ``T_gt`` (``|T_gt p - q| < 10 cm``, method.md 8's
+tau1) and the share of pairs above tau2 = 5 % (BYOC's "corr" feature-match recall). This
+moves long before the registration accuracy does, because randomized Procrustes needs a
+large inlier share to recover the pose.
 """
 
 from __future__ import annotations
@@ -17,6 +23,10 @@ from byoc_cli.training.data import PairDataset
 
 ROT_THRESHOLDS_DEG = (5.0, 10.0, 45.0)
 TRANS_THRESHOLDS_CM = (5.0, 10.0, 25.0)
+#: metres: a correspondence is an inlier under the ground truth below this (tau1)
+INLIER_DISTANCE = 0.10
+#: a pair counts as recalled when its inlier share is above this (tau2)
+INLIER_RATIO = 0.05
 
 
 class PairErrors(NamedTuple):
@@ -25,10 +35,46 @@ class PairErrors(NamedTuple):
     Attributes:
         rotation_deg: ``(P,)`` float64.
         translation_cm: ``(P,)`` float64.
+        inlier_ratio: ``(P,)`` float64 share of the correspondences within
+            :data:`INLIER_DISTANCE` under the ground truth, or None when not measured.
     """
 
     rotation_deg: torch.Tensor
     translation_cm: torch.Tensor
+    inlier_ratio: torch.Tensor | None = None
+
+
+class PairRegistration(NamedTuple):
+    """A test-time registration and the correspondences it was fitted to.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64 estimate (CPU).
+        points_src, points_tgt: ``(K, 3)`` float64 matched points (CPU).
+    """
+
+    T_tgt_src: torch.Tensor
+    points_src: torch.Tensor
+    points_tgt: torch.Tensor
+
+
+def inlier_ratio(
+    T_gt: torch.Tensor,
+    points_src: torch.Tensor,
+    points_tgt: torch.Tensor,
+    threshold: float = INLIER_DISTANCE,
+) -> float:
+    """Share of correspondences with ``|T_gt p - q| < threshold`` (0 when there is none).
+
+    Args:
+        T_gt: ``(4, 4)`` ground-truth ``T_tgt_src``.
+        points_src, points_tgt: ``(K, 3)`` matched points.
+    """
+    if points_src.shape[0] == 0:
+        return 0.0
+    T = T_gt.to(torch.float64)
+    moved = points_src.to(torch.float64) @ T[:3, :3].transpose(0, 1) + T[:3, 3]
+    dist = (moved - points_tgt.to(torch.float64)).norm(dim=-1)
+    return float((dist < threshold).double().mean())
 
 
 def pose_accuracy(errors: PairErrors) -> dict[str, float]:
@@ -37,7 +83,9 @@ def pose_accuracy(errors: PairErrors) -> dict[str, float]:
     Returns:
         ``rot_acc_5``, ``rot_acc_10``, ``rot_acc_45``, ``rot_mean_deg``, ``rot_median_deg``,
         ``trans_acc_5``, ``trans_acc_10``, ``trans_acc_25``, ``trans_mean_cm``,
-        ``trans_median_cm``, ``num_pairs`` (NaN statistics when there is no pair).
+        ``trans_median_cm``, ``num_pairs`` (NaN statistics when there is no pair); with
+        inlier ratios also ``inlier_pct_mean`` (mean share of inlier correspondences, %)
+        and ``corr_fmr`` (% of pairs whose share is above :data:`INLIER_RATIO`).
     """
     rot = errors.rotation_deg.to(torch.float64)
     trans = errors.translation_cm.to(torch.float64)
@@ -52,6 +100,10 @@ def pose_accuracy(errors: PairErrors) -> dict[str, float]:
         out[f"trans_acc_{thr:g}"] = 100.0 * float((trans < thr).double().mean()) if n else nan
     out["trans_mean_cm"] = float(trans.mean()) if n else nan
     out["trans_median_cm"] = float(trans.median()) if n else nan
+    if errors.inlier_ratio is not None:
+        ratio = errors.inlier_ratio.to(torch.float64)
+        out["inlier_pct_mean"] = 100.0 * float(ratio.mean()) if n else nan
+        out["corr_fmr"] = 100.0 * float((ratio > INLIER_RATIO).double().mean()) if n else nan
     out["num_pairs"] = float(n)
     return out
 
@@ -67,7 +119,7 @@ def register_pair_geometric(
     num_subsets: int = 100,
     subset_size: int = 20,
     generator: torch.Generator | None = None,
-) -> torch.Tensor:
+) -> PairRegistration:
     """``T_tgt_src`` from geometric features (test-time pipeline).
 
     Args:
@@ -79,7 +131,7 @@ def register_pair_geometric(
         generator: for the subsets.
 
     Returns:
-        ``(4, 4)`` float64 on CPU.
+        :class:`PairRegistration` (CPU).
     """
     from byoc_cli.fitting import randomized_procrustes
     from byoc_cli.matching import ratio_test_correspondences
@@ -103,7 +155,7 @@ def register_pair_geometric(
         subset_size=subset_size,
         generator=generator,
     )
-    return fit.T_tgt_src.to(torch.float64).cpu()
+    return PairRegistration(fit.T_tgt_src.to(torch.float64).cpu(), p.cpu(), q.cpu())
 
 
 def validate(
@@ -131,7 +183,7 @@ def validate(
     was_training = encoder.training
     encoder.eval()
     generator = torch.Generator().manual_seed(seed)
-    rot, trans = [], []
+    rot, trans, inliers = [], [], []
     try:
         for index in range(len(dataset)):
             sample = dataset[index]
@@ -140,7 +192,7 @@ def validate(
             v0, v1 = sample.view0, sample.view1
             if min(v0.point_index.numel(), v1.point_index.numel()) < 3:
                 continue
-            T = register_pair_geometric(
+            reg = register_pair_geometric(
                 encoder,
                 v1.coords,
                 v0.coords,
@@ -149,11 +201,14 @@ def validate(
                 k=k,
                 generator=generator,
             )
-            rot.append(float(rotation_error_deg(T, sample.T_gt)))
-            trans.append(100.0 * float(translation_error(T, sample.T_gt)))
+            rot.append(float(rotation_error_deg(reg.T_tgt_src, sample.T_gt)))
+            trans.append(100.0 * float(translation_error(reg.T_tgt_src, sample.T_gt)))
+            inliers.append(inlier_ratio(sample.T_gt, reg.points_src, reg.points_tgt))
     finally:
         encoder.train(was_training)
     errors = PairErrors(
-        torch.tensor(rot, dtype=torch.float64), torch.tensor(trans, dtype=torch.float64)
+        torch.tensor(rot, dtype=torch.float64),
+        torch.tensor(trans, dtype=torch.float64),
+        torch.tensor(inliers, dtype=torch.float64),
     )
     return pose_accuracy(errors), errors
