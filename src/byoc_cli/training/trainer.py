@@ -44,7 +44,13 @@ from byoc_cli.training.data import (
     sequence_name,
     worker_init,
 )
-from byoc_cli.training.distributed import DistInfo, gather_objects, init_distributed, mean_across
+from byoc_cli.training.distributed import (
+    DistInfo,
+    barrier,
+    gather_objects,
+    init_distributed,
+    mean_across,
+)
 from byoc_cli.training.model import ByocModel, LossTerms
 from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics, read_metrics
 from byoc_cli.training.validate import validate
@@ -404,6 +410,8 @@ def _train(
         raise InputError(
             run_dir, "already holds a training run (use --resume to continue it, or another --out)"
         )
+    # every process has looked at the folder before rank 0 writes config.json into it
+    barrier(info)
     train_set, val_set, data_names = build_datasets(config)
 
     model = build_model(config, info.rank, _amp_dtype(config, device)).to(device)
