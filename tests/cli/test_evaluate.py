@@ -310,6 +310,8 @@ def test_eval_pairs_prepared_and_several_weights(shared_data, tmp_path):
     assert result.exit_code == 0, result.output
     report = json.loads(out.read_text())
     assert list(report["results"]) == ["byoc[a]", "byoc[b]", "identity"]
+    # the table's column labels are printed as text, not swallowed as rich markup
+    assert "byoc[a]" in result.output and "byoc[b]" in result.output
     assert report["num_pairs"] == 1
     shas = {m["features"]["tensors_sha256"] for m in report["methods"] if m["kind"] == "byoc"}
     assert len(shas) == 2

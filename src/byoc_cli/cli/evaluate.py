@@ -93,7 +93,8 @@ def _common_options(func):
             "--weights",
             multiple=True,
             type=click.Path(dir_okay=False, path_type=Path),
-            help="Weights file for byoc; repeat to compare several (columns byoc[name]). "
+            help="Weights file for byoc; repeat to compare several (columns byoc[name], "
+            "byoc[folder/name] when names repeat). "
             "None: a random compact encoder seeded with --seed.",
         ),
         click.option(
@@ -236,15 +237,17 @@ class _Display:
 
 def _print_table(title: str, columns: list[str], rows: list[list[str]], notes: list[str]) -> None:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     width = None if sys.stderr.isatty() else max(100, 40 + 22 * (len(columns) - 1))
     console = Console(stderr=True, width=width, highlight=False)
-    table = Table(title=title, title_justify="left")
+    # labels such as byoc[run] and paths are text, not rich markup
+    table = Table(title=escape(title), title_justify="left")
     for k, name in enumerate(columns):
-        table.add_column(name, justify="left" if k == 0 else "right", no_wrap=k == 0)
+        table.add_column(escape(name), justify="left" if k == 0 else "right", no_wrap=k == 0)
     for row in rows:
-        table.add_row(*row)
+        table.add_row(*(escape(cell) for cell in row))
     console.print(table)
     for note in notes:
         console.print(note, markup=False)

@@ -52,6 +52,7 @@ __all__ = [
     "feature_specs",
     "icp_points",
     "parse_method_names",
+    "weights_labels",
 ]
 
 #: Every method name ``--method`` accepts, in table order.
@@ -221,6 +222,27 @@ def parse_method_names(values: Sequence[str]) -> list[str]:
     return names
 
 
+def weights_labels(weights: Sequence[str | Path]) -> list[str]:
+    """Short unique column labels for weights files, in order.
+
+    The file stem where it is unique; else ``folder/stem`` (training writes
+    ``RUN/weights.safetensors``, so runs are told apart by their folder); else
+    ``stem#N`` with N the 1-based position.
+    """
+    paths = [Path(w) for w in weights]
+    stems = [p.stem for p in paths]
+    named = [f"{p.parent.name}/{p.stem}" if p.parent.name else p.stem for p in paths]
+    labels = []
+    for index, stem in enumerate(stems):
+        if stems.count(stem) == 1:
+            labels.append(stem)
+        elif named.count(named[index]) == 1:
+            labels.append(named[index])
+        else:
+            labels.append(f"{stem}#{index + 1}")
+    return labels
+
+
 def _byoc_specs(weights: Sequence[Path], seed: int, device: str) -> list[FeatureSpec]:
     from byoc_cli.pipeline.features import ByocExtractor
     from byoc_cli.pipeline.weights import init_weights, load_weights, tensors_sha256
@@ -251,12 +273,12 @@ def _byoc_specs(weights: Sequence[Path], seed: int, device: str) -> list[Feature
                 },
             )
         ]
-    stems = [Path(w).stem for w in weights]
+    labels = weights_labels(weights)
     specs = []
     for index, path in enumerate(weights):
         loaded = load_weights(path)
         voxel = float(loaded.metadata["voxel_size"])
-        label = stems[index] if stems.count(stems[index]) == 1 else f"{stems[index]}#{index + 1}"
+        label = labels[index]
         specs.append(
             FeatureSpec(
                 key="byoc" if len(weights) == 1 else f"byoc[{label}]",
