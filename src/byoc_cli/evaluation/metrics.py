@@ -27,7 +27,12 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry import apply_transform, rotation_error_deg, translation_error
+from byoc_cli.geometry import (
+    apply_transform,
+    correspondence_inlier_ratio,
+    rotation_error_deg,
+    translation_error,
+)
 from byoc_cli.matching import feature_knn
 
 __all__ = [
@@ -154,33 +159,6 @@ def nn_inlier_ratio(
         dist = torch.linalg.vector_norm(target - moved[nn], dim=1)
     inliers = int((dist < tau1).sum())
     return MatchInliers(inliers / dist.numel(), int(dist.numel()), inliers)
-
-
-def correspondence_inlier_ratio(
-    points_src: torch.Tensor,
-    points_tgt: torch.Tensor,
-    T_tgt_src: torch.Tensor,
-    tau1: float = 0.10,
-) -> float:
-    """Share of correspondences ``(points_src[k], points_tgt[k])`` within ``tau1`` under T.
-
-    Args:
-        points_src, points_tgt: ``(K, 3)`` corresponding points.
-        T_tgt_src: ``(4, 4)`` ground truth.
-        tau1: inlier distance.
-
-    Returns:
-        The share in [0, 1]; 0 when ``K == 0``.
-    """
-    _check_points(points_src, "points_src")
-    _check_points(points_tgt, "points_tgt")
-    if points_src.shape[0] != points_tgt.shape[0]:
-        raise ShapeError("points_src and points_tgt must have the same number of rows")
-    if points_src.shape[0] == 0:
-        return 0.0
-    moved = apply_transform(T_tgt_src.to(torch.float64), points_src.to(torch.float64))
-    dist = torch.linalg.vector_norm(moved - points_tgt.to(torch.float64), dim=1)
-    return float((dist < tau1).double().mean())
 
 
 def recall_by_group(

@@ -11,6 +11,7 @@ Conventions used throughout byoc-cli:
 from byoc_cli.geometry.transforms import (
     apply_transform,
     compose,
+    correspondence_inlier_ratio,
     invert_transform,
     make_transform,
     random_rigid_transform,
@@ -23,6 +24,7 @@ __all__ = [
     "VoxelGrid",
     "apply_transform",
     "compose",
+    "correspondence_inlier_ratio",
     "invert_transform",
     "make_transform",
     "random_rigid_transform",

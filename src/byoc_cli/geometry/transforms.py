@@ -110,6 +110,37 @@ def translation_error(T_est: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
     )
 
 
+def correspondence_inlier_ratio(
+    points_src: torch.Tensor,
+    points_tgt: torch.Tensor,
+    T_tgt_src: torch.Tensor,
+    tau1: float = 0.10,
+) -> float:
+    """Share of correspondences ``(points_src[k], points_tgt[k])`` within ``tau1`` under T.
+
+    Args:
+        points_src, points_tgt: ``(K, 3)`` corresponding points.
+        T_tgt_src: ``(4, 4)`` transform (usually the ground truth).
+        tau1: inlier distance.
+
+    Returns:
+        The share in [0, 1]; 0 when ``K == 0``.
+
+    Raises:
+        ShapeError: points not ``(K, 3)`` or of different lengths.
+    """
+    for points, name in ((points_src, "points_src"), (points_tgt, "points_tgt")):
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ShapeError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
+    if points_src.shape[0] != points_tgt.shape[0]:
+        raise ShapeError("points_src and points_tgt must have the same number of rows")
+    if points_src.shape[0] == 0:
+        return 0.0
+    moved = apply_transform(T_tgt_src.to(torch.float64), points_src.to(torch.float64))
+    dist = torch.linalg.vector_norm(moved - points_tgt.to(torch.float64), dim=1)
+    return float((dist < tau1).double().mean())
+
+
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula.
 

@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import torch
 
-from byoc_cli.geometry import rotation_error_deg, translation_error
+from byoc_cli.geometry import correspondence_inlier_ratio, rotation_error_deg, translation_error
 from byoc_cli.training.data import PairDataset
 
 ROT_THRESHOLDS_DEG = (5.0, 10.0, 45.0)
@@ -69,12 +69,7 @@ def inlier_ratio(
         T_gt: ``(4, 4)`` ground-truth ``T_tgt_src``.
         points_src, points_tgt: ``(K, 3)`` matched points.
     """
-    if points_src.shape[0] == 0:
-        return 0.0
-    T = T_gt.to(torch.float64)
-    moved = points_src.to(torch.float64) @ T[:3, :3].transpose(0, 1) + T[:3, 3]
-    dist = (moved - points_tgt.to(torch.float64)).norm(dim=-1)
-    return float((dist < threshold).double().mean())
+    return correspondence_inlier_ratio(points_src, points_tgt, T_gt, threshold)
 
 
 def pose_accuracy(errors: PairErrors) -> dict[str, float]:
