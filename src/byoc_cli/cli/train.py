@@ -103,6 +103,13 @@ class _Display:
             )
 
     def on_validation(self, step: int, metrics: dict) -> None:
+        if "rot_acc_5" not in metrics:  # the self-posed variant's feature-match validation
+            self.echo(
+                f"validation at step {step} ({int(metrics.get('num_pairs', 0))} pairs): "
+                f"feature-match recall {_fmt(100 * metrics['fmr'], '.1f')}%, inlier ratio "
+                f"{_fmt(100 * metrics['inlier_ratio'], '.1f')}%"
+            )
+            return
         self.echo(
             f"validation at step {step} ({int(metrics.get('num_pairs', 0))} pairs): rotation "
             f"{_fmt(metrics['rot_acc_5'], '.1f')}/{_fmt(metrics['rot_acc_10'], '.1f')}/"
@@ -189,7 +196,7 @@ def _interrupt_on_sigterm() -> None:
 )
 @click.option(
     "--variant",
-    type=click.Choice(["byoc", "byoc-geo", "byoc-vis", "byoc-rot"]),
+    type=click.Choice(["byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed"]),
     default=None,
     help="Model variant [default: byoc].",
 )

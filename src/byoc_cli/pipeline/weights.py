@@ -23,7 +23,7 @@ from byoc_cli.models.encoder import ENCODER_CONFIGS, EncoderConfig, GeometricEnc
 FORMAT = "byoc-weights"
 FORMAT_VERSION = 1
 METADATA_KEY = "byoc"
-VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "random-init")
+VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed", "random-init")
 _REQUIRED = {
     "format": str,
     "format_version": int,

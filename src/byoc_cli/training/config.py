@@ -16,11 +16,11 @@ from typing import Any
 
 from byoc_cli.errors import InputError
 
-VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot")
+VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed")
 #: variants with a visual branch (need colour images)
 VISUAL_VARIANTS = ("byoc", "byoc-vis", "byoc-rot")
 #: variants with a geometric branch
-GEOMETRIC_VARIANTS = ("byoc", "byoc-geo", "byoc-rot")
+GEOMETRIC_VARIANTS = ("byoc", "byoc-geo", "byoc-rot", "self-posed")
 
 #: keys that may change when a run is resumed; every other key is fixed by the run
 RESUMABLE_KEYS = frozenset(
@@ -71,6 +71,12 @@ class TrainConfig:
         depth_scale: depth units per metre (None = the layout's convention).
         rot_max_angle_deg, rot_max_translation: byoc-rot augmentation ranges.
         keep_checkpoints: how many most recent checkpoints to keep.
+        num_positives: ``self-posed``: correspondences per pair in the InfoNCE loss.
+        temperature: ``self-posed``: InfoNCE temperature.
+        aug_rotation_deg: ``self-posed``: each view is rotated by an angle up to this.
+        aug_scale: ``self-posed``: shared scale jitter ``1 +- aug_scale``.
+        aug_min_keep: ``self-posed``: each view keeps a random share >= this of its points.
+        pair_gaps: ``self-posed``: frame distances of the self-posed pairs.
     """
 
     rgbd_dir: tuple[str, ...] = ()
@@ -102,8 +108,15 @@ class TrainConfig:
     rot_max_angle_deg: float = 80.0
     rot_max_translation: float = 0.5
     keep_checkpoints: int = 2
+    num_positives: int = 1024
+    temperature: float = 0.1
+    aug_rotation_deg: float = 60.0
+    aug_scale: float = 0.05
+    aug_min_keep: float = 0.7
+    pair_gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "pair_gaps", tuple(int(g) for g in self.pair_gaps))
         problems = []
         if self.variant not in VARIANTS:
             problems.append(f"variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
@@ -115,6 +128,7 @@ class TrainConfig:
             "num_correspondences",
             "image_size",
             "keep_checkpoints",
+            "num_positives",
         ):
             if getattr(self, name) < 1:
                 problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -128,7 +142,11 @@ class TrainConfig:
         ):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("lr", "adam_eps", "voxel_size"):
+        if not self.pair_gaps or min(self.pair_gaps) < 1:
+            problems.append(f"pair_gaps must be positive frame distances, got {self.pair_gaps}")
+        if not 0 < self.aug_min_keep <= 1 or not 0 <= self.aug_scale < 1:
+            problems.append("aug_min_keep must be in (0, 1] and aug_scale in [0, 1)")
+        for name in ("lr", "adam_eps", "voxel_size", "temperature"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name} must be > 0, got {getattr(self, name)}")
         if self.weight_decay < 0:
@@ -171,6 +189,14 @@ def _coerce(key: str, value: Any, source: object) -> Any:
             return tuple(value)
         raise InputError(source, f"'{key}' must be a path or a list of paths")
     ref = TrainConfig.__dataclass_fields__[key].default
+    if key == "pair_gaps":
+        if (
+            isinstance(value, list | tuple)
+            and value
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+        ):
+            return tuple(value)
+        raise InputError(source, f"'{key}' must be a list of integers, got {value!r}")
     if isinstance(ref, bool) or key in ("amp", "deterministic"):
         if value is None or isinstance(value, bool):
             return value

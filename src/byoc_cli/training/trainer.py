@@ -386,6 +386,10 @@ def train(
         DatasetError: unusable data folders. InputError: a run folder that already holds a
         run (without ``resume``) or is not one (with ``resume``).
     """
+    if config.variant == "self-posed":
+        from byoc_cli.training.self_posed import train_self_posed
+
+        return train_self_posed(config, resume, callbacks or TrainCallbacks())
     info = info or init_distributed(config.device)
     deterministic = (
         config.deterministic if config.deterministic is not None else info.device.type == "cpu"

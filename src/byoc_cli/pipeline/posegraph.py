@@ -1,0 +1,182 @@
+"""Pairwise ICP and pose graphs over many clouds (Open3D, imported lazily).
+
+Shared by the self-posed training pairs (``byoc_cli.training.pseudo_poses``) and by any
+multi-cloud registration. Clouds are ``(N, 3)`` float numpy arrays in metres. Transforms
+follow the package convention: ``T_tgt_src`` is ``(4, 4)`` float64 on column vectors. A
+pose graph holds ``T_world_node`` per node; an edge ``(s, t)`` carries ``T_t_s`` (maps node
+``s`` into node ``t``) and a 6x6 information matrix (Open3D's order: rotation, translation).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from byoc_cli.errors import require_open3d
+
+#: normals from at most this many neighbours within 2 voxels
+NORMAL_MAX_NN = 30
+#: ICP scales as multiples of the fine voxel: (voxel factor, correspondence distance factor)
+ICP_SCALES = ((4.0, 6.0), (2.0, 3.0), (1.0, 1.5))
+ICP_ITERATIONS = (30, 30, 30)
+
+
+class PreparedCloud(NamedTuple):
+    """One cloud at the ICP scales: ``levels[k]`` is an Open3D cloud with normals."""
+
+    levels: list[Any]
+    voxel_size: float
+
+
+class PairEstimate(NamedTuple):
+    """An ICP result.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64.
+        fitness: share of source points with a target point within the finest distance.
+        rmse: RMS distance of those inlier pairs (metres).
+        information: ``(6, 6)`` Open3D information matrix at the finest distance.
+    """
+
+    T_tgt_src: np.ndarray
+    fitness: float
+    rmse: float
+    information: np.ndarray
+
+
+def prepare_cloud(points: np.ndarray, voxel_size: float) -> PreparedCloud:
+    """Voxel-downsample ``points (N, 3)`` at each ICP scale and estimate normals."""
+    o3d = require_open3d()
+    base = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    levels = []
+    for voxel_factor, _ in ICP_SCALES:
+        size = voxel_factor * voxel_size
+        cloud = base.voxel_down_sample(size)
+        cloud.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * size, max_nn=NORMAL_MAX_NN)
+        )
+        levels.append(cloud)
+    return PreparedCloud(levels, float(voxel_size))
+
+
+def multiscale_icp(src: PreparedCloud, tgt: PreparedCloud, T_init: np.ndarray) -> PairEstimate:
+    """Coarse-to-fine point-to-plane ICP of ``src`` onto ``tgt`` from ``T_init (4, 4)``."""
+    o3d = require_open3d()
+    reg = o3d.pipelines.registration
+    T = np.asarray(T_init, np.float64)
+    result = None
+    for level, ((voxel_factor, dist_factor), iters) in enumerate(
+        zip(ICP_SCALES, ICP_ITERATIONS, strict=True)
+    ):
+        del voxel_factor
+        dist = dist_factor * src.voxel_size
+        result = reg.registration_icp(
+            src.levels[level],
+            tgt.levels[level],
+            dist,
+            T,
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(max_iteration=iters),
+        )
+        T = np.asarray(result.transformation)
+    dist = ICP_SCALES[-1][1] * src.voxel_size
+    info = reg.get_information_matrix_from_point_clouds(src.levels[-1], tgt.levels[-1], dist, T)
+    return PairEstimate(
+        T.copy(), float(result.fitness), float(result.inlier_rmse), np.asarray(info)
+    )
+
+
+def fpfh_ransac(src: PreparedCloud, tgt: PreparedCloud, seed: int = 0) -> np.ndarray:
+    """Global FPFH + RANSAC (Open3D, on the coarsest ICP level); returns ``T_tgt_src``."""
+    o3d = require_open3d()
+    reg = o3d.pipelines.registration
+    size = ICP_SCALES[0][0] * src.voxel_size
+    feats = [
+        reg.compute_fpfh_feature(
+            cloud.levels[0], o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * size, max_nn=100)
+        )
+        for cloud in (src, tgt)
+    ]
+    o3d.utility.random.seed(seed)
+    result = reg.registration_ransac_based_on_feature_matching(
+        src.levels[0],
+        tgt.levels[0],
+        feats[0],
+        feats[1],
+        True,
+        1.5 * size,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            reg.CorrespondenceCheckerBasedOnDistance(1.5 * size),
+        ],
+        reg.RANSACConvergenceCriteria(100_000, 0.999),
+    )
+    return np.asarray(result.transformation).copy()
+
+
+class Edge(NamedTuple):
+    """A pose-graph edge: ``T_tgt_src`` maps node ``src`` into node ``tgt``."""
+
+    src: int
+    tgt: int
+    T_tgt_src: np.ndarray
+    information: np.ndarray
+    uncertain: bool
+
+
+def optimize_pose_graph(
+    poses: list[np.ndarray],
+    edges: list[Edge],
+    max_correspondence_distance: float,
+    *,
+    edge_prune_threshold: float = 0.25,
+    preference_loop_closure: float = 0.1,
+) -> tuple[list[np.ndarray], list[bool]]:
+    """Globally optimise node poses with Open3D (Levenberg-Marquardt, pruning bad edges).
+
+    Args:
+        poses: initial ``T_world_node (4, 4)`` per node (node 0 is the reference).
+        edges: odometry edges (``uncertain=False``) and loop edges (``True``).
+        max_correspondence_distance: the ICP distance the information matrices used.
+        edge_prune_threshold: Open3D's line-process threshold for pruning loop edges.
+        preference_loop_closure: Open3D's weight of loop edges against odometry.
+
+    Returns:
+        ``(poses, kept)``: optimised ``T_world_node`` per node and, per input edge, whether
+        the optimisation kept it (odometry edges are always kept).
+    """
+    o3d = require_open3d()
+    reg = o3d.pipelines.registration
+    graph = reg.PoseGraph()
+    for pose in poses:
+        graph.nodes.append(reg.PoseGraphNode(np.asarray(pose, np.float64)))
+    for edge in edges:
+        # Open3D's edge (s, t) holds the transform that maps node s into node t
+        graph.edges.append(
+            reg.PoseGraphEdge(
+                edge.src,
+                edge.tgt,
+                np.asarray(edge.T_tgt_src, np.float64),
+                np.asarray(edge.information, np.float64),
+                uncertain=edge.uncertain,
+            )
+        )
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=max_correspondence_distance,
+        edge_prune_threshold=edge_prune_threshold,
+        preference_loop_closure=preference_loop_closure,
+        reference_node=0,
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(
+            graph,
+            reg.GlobalOptimizationLevenbergMarquardt(),
+            reg.GlobalOptimizationConvergenceCriteria(),
+            option,
+        )
+    kept_keys = {(e.source_node_id, e.target_node_id) for e in graph.edges}
+    kept = [(e.src, e.tgt) in kept_keys for e in edges]
+    return [np.asarray(node.pose).copy() for node in graph.nodes], kept

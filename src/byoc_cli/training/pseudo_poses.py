@@ -1,0 +1,342 @@
+"""Self-posed training pairs: relative poses a sequence gives itself, verified, no ground truth.
+
+For one depth sequence (poses never read):
+
+1. odometry: every consecutive pair of (sub-sampled) frames is registered with coarse-to-fine
+   point-to-plane ICP from the identity and from the previous motion (constant velocity); when
+   neither fits, FPFH + RANSAC gives the start. A frame that still does not fit starts a new
+   segment (the chain is never bridged by a guess);
+2. wide pairs: inside a segment, every ``start_stride``-th frame is paired with the frames
+   ``gaps`` later; each pair is registered directly with ICP started from the chained
+   odometry, and kept as a loop edge when its fit is good (overlap, RMSE) and it agrees with
+   the chain within a loose bound (ICP did not slide into another basin);
+3. a pose graph of the odometry and loop edges is optimised (Open3D, pruning inconsistent
+   edges); a wide pair is kept for training only when its direct estimate agrees with the
+   optimised poses, i.e. with every other path between its two frames (cycle consistency).
+
+The kept pairs carry the direct estimate ``T_i_j`` (maps frame ``j`` into frame ``i``).
+Accuracy against ground truth is measured by :func:`pair_accuracy`, which the training
+never calls.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+#: frame points farther than this from the camera are dropped (Kinect noise grows with z^2)
+DEFAULT_MAX_DEPTH = 4.0
+
+
+@dataclass(frozen=True)
+class PseudoPoseConfig:
+    """Settings of :func:`estimate_pairs` (serialisable with ``dataclasses.asdict``).
+
+    Attributes:
+        voxel_size: the fine ICP voxel (metres).
+        max_depth: points farther from the camera are dropped (metres).
+        frame_stride: use every ``frame_stride``-th frame of the sequence.
+        gaps: frame distances (in used frames) of the wide pairs.
+        start_stride: a wide pair starts every ``start_stride`` used frames.
+        min_fitness: smallest ICP overlap of a kept pair (share of source points matched).
+        max_rmse: largest ICP inlier RMSE of a kept pair (metres).
+        odometry_min_fitness, odometry_max_rmse: the same for consecutive frames.
+        chain_rotation_deg, chain_translation: loose agreement with the chained odometry.
+        graph_rotation_deg, graph_translation: tight agreement with the optimised graph.
+        seed: seeds RANSAC.
+    """
+
+    voxel_size: float = 0.025
+    max_depth: float = DEFAULT_MAX_DEPTH
+    frame_stride: int = 1
+    gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
+    start_stride: int = 2
+    min_fitness: float = 0.3
+    max_rmse: float = 0.025
+    odometry_min_fitness: float = 0.6
+    odometry_max_rmse: float = 0.025
+    chain_rotation_deg: float = 10.0
+    chain_translation: float = 0.2
+    graph_rotation_deg: float = 2.0
+    graph_translation: float = 0.04
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "gaps", tuple(int(g) for g in self.gaps))
+        if self.voxel_size <= 0 or self.frame_stride < 1 or self.start_stride < 1:
+            raise ValueError("voxel_size must be > 0, frame_stride and start_stride >= 1")
+        if not self.gaps or min(self.gaps) < 1:
+            raise ValueError(f"gaps must be positive frame distances, got {self.gaps}")
+
+
+class PseudoPair(NamedTuple):
+    """A verified pair: ``T_i_j`` maps the points of frame ``j`` into frame ``i``.
+
+    ``i`` and ``j`` are positions in the sequence's frame list (``i < j``).
+    """
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    fitness: float
+    rmse: float
+
+
+class SequencePairs(NamedTuple):
+    """Result of :func:`estimate_pairs` for one sequence.
+
+    Attributes:
+        frames: positions (in the sequence's frame list) of the frames used.
+        poses: optimised ``T_seg_frame (4, 4)`` per used frame, relative to its segment start.
+        segments: segment id per used frame.
+        pairs: the kept wide pairs.
+        candidates: per gap, the number of wide pairs tried.
+        kept: per gap, the number of wide pairs kept.
+        stats: counts of the odometry and of each rejection reason.
+    """
+
+    frames: list[int]
+    poses: list[np.ndarray]
+    segments: list[int]
+    pairs: list[PseudoPair]
+    candidates: dict[int, int]
+    kept: dict[int, int]
+    stats: dict[str, int]
+
+
+def frame_points(sequence: Any, index: int, max_depth: float = DEFAULT_MAX_DEPTH) -> np.ndarray:
+    """Back-project frame ``index`` of ``sequence`` at full resolution: ``(N, 3)`` float32.
+
+    Reads only the depth image and the intrinsics (never a pose).
+    """
+    from byoc_cli.io.rgbd import backproject
+
+    depth = sequence.read_depth(index)
+    depth = np.where(depth <= max_depth, depth, 0.0).astype(np.float32)
+    return np.asarray(backproject(depth, sequence.K).points, dtype=np.float32)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of the rotation ``R (3, 3)`` in degrees."""
+    cos = (np.trace(R) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+
+
+def transform_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Rotation (deg) and translation (m) of ``inv(T_a) @ T_b``."""
+    delta = np.linalg.inv(T_a) @ T_b
+    return rotation_angle_deg(delta[:3, :3]), float(np.linalg.norm(delta[:3, 3]))
+
+
+def _fits(est: Any, min_fitness: float, max_rmse: float) -> bool:
+    return est.fitness >= min_fitness and est.rmse <= max_rmse
+
+
+def _odometry_step(clouds, k: int, velocity: np.ndarray, config: PseudoPoseConfig):
+    """Register used frame ``k`` onto ``k - 1``; returns the best estimate and its origin."""
+    from byoc_cli.pipeline.posegraph import fpfh_ransac, multiscale_icp
+
+    src, tgt = clouds[k], clouds[k - 1]
+    tries = [("identity", multiscale_icp(src, tgt, np.eye(4)))]
+    if not np.allclose(velocity, np.eye(4)):
+        tries.append(("velocity", multiscale_icp(src, tgt, velocity)))
+    best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
+    if not _fits(best[1], config.odometry_min_fitness, config.odometry_max_rmse):
+        start = fpfh_ransac(src, tgt, seed=config.seed + k)
+        tries.append(("fpfh", multiscale_icp(src, tgt, start)))
+        best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
+    return best
+
+
+def estimate_pairs(
+    sequence: Any,
+    config: PseudoPoseConfig | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> SequencePairs:
+    """Estimate, verify and keep wide self-posed pairs of one sequence (see module doc).
+
+    Args:
+        sequence: an ``RGBDSequence`` (its poses, if any, are never read).
+        config: settings.
+        progress: called as ``progress(stage, done, total)``.
+
+    Returns:
+        :class:`SequencePairs`.
+    """
+    from byoc_cli.pipeline.posegraph import Edge, optimize_pose_graph, prepare_cloud
+
+    config = config or PseudoPoseConfig()
+    report = progress or (lambda *_: None)
+    frames = list(range(0, len(sequence.frames), config.frame_stride))
+    clouds = []
+    for n, f in enumerate(frames):
+        clouds.append(prepare_cloud(frame_points(sequence, f, config.max_depth), config.voxel_size))
+        report("frames", n + 1, len(frames))
+
+    stats = {"odometry_identity": 0, "odometry_velocity": 0, "odometry_fpfh": 0, "breaks": 0}
+    segments, chain, odo_edges = [0], [np.eye(4)], []
+    velocity = np.eye(4)
+    for k in range(1, len(frames)):
+        origin, est = _odometry_step(clouds, k, velocity, config)
+        if _fits(est, config.odometry_min_fitness, config.odometry_max_rmse):
+            stats[f"odometry_{origin}"] += 1
+            segments.append(segments[-1])
+            chain.append(chain[-1] @ est.T_tgt_src)
+            odo_edges.append(Edge(k, k - 1, est.T_tgt_src, est.information, False))
+            velocity = est.T_tgt_src
+        else:
+            stats["breaks"] += 1
+            segments.append(segments[-1] + 1)
+            chain.append(np.eye(4))
+            velocity = np.eye(4)
+        report("odometry", k, len(frames) - 1)
+
+    starts = list(range(0, len(frames), config.start_stride))
+    candidates = dict.fromkeys(config.gaps, 0)
+    loop_edges, loop_gaps = [], []
+    for n, a in enumerate(starts):
+        for gap in config.gaps:
+            b = a + gap
+            if b >= len(frames) or segments[b] != segments[a]:
+                continue
+            candidates[gap] += 1
+            T_chain = np.linalg.inv(chain[a]) @ chain[b]
+            est = _direct(clouds, a, b, T_chain)
+            if not _fits(est, config.min_fitness, config.max_rmse):
+                stats["rejected_fit"] = stats.get("rejected_fit", 0) + 1
+                continue
+            rot, trans = transform_difference(T_chain, est.T_tgt_src)
+            if rot > config.chain_rotation_deg or trans > config.chain_translation:
+                stats["rejected_chain"] = stats.get("rejected_chain", 0) + 1
+                continue
+            loop_edges.append((Edge(b, a, est.T_tgt_src, est.information, True), est))
+            loop_gaps.append(gap)
+        report("pairs", n + 1, len(starts))
+
+    poses = list(chain)
+    kept_pairs: list[PseudoPair] = []
+    kept = dict.fromkeys(config.gaps, 0)
+    for seg in sorted(set(segments)):
+        nodes = [k for k, s in enumerate(segments) if s == seg]
+        if len(nodes) < 2:
+            continue
+        local = {k: n for n, k in enumerate(nodes)}
+        seg_loops = [
+            (e, est, g) for (e, est), g in zip(loop_edges, loop_gaps, strict=True) if e.src in local
+        ]
+        edges = [_local_edge(e, local) for e in odo_edges if e.src in local]
+        edges += [_local_edge(e, local) for e, _, _ in seg_loops]
+        optimised, edge_kept = optimize_pose_graph(
+            [chain[k] for k in nodes], edges, ICP_FINE_DISTANCE_FACTOR * config.voxel_size
+        )
+        for k, pose in zip(nodes, optimised, strict=True):
+            poses[k] = pose
+        loop_kept = edge_kept[len(edges) - len(seg_loops) :]
+        for (edge, est, gap), survived in zip(seg_loops, loop_kept, strict=True):
+            a, b = edge.tgt, edge.src
+            T_graph = np.linalg.inv(poses[a]) @ poses[b]
+            rot, trans = transform_difference(T_graph, est.T_tgt_src)
+            if not survived:
+                stats["rejected_pruned"] = stats.get("rejected_pruned", 0) + 1
+            elif rot > config.graph_rotation_deg or trans > config.graph_translation:
+                stats["rejected_cycle"] = stats.get("rejected_cycle", 0) + 1
+            else:
+                kept[gap] += 1
+                kept_pairs.append(
+                    PseudoPair(frames[a], frames[b], est.T_tgt_src, est.fitness, est.rmse)
+                )
+    return SequencePairs(frames, poses, segments, kept_pairs, candidates, kept, stats)
+
+
+#: the finest ICP correspondence distance as a multiple of the voxel (posegraph.ICP_SCALES)
+ICP_FINE_DISTANCE_FACTOR = 1.5
+
+
+def _direct(clouds, a: int, b: int, T_init: np.ndarray):
+    from byoc_cli.pipeline.posegraph import multiscale_icp
+
+    return multiscale_icp(clouds[b], clouds[a], T_init)
+
+
+def _local_edge(edge: Any, local: dict[int, int]) -> Any:
+    return edge._replace(src=local[edge.src], tgt=local[edge.tgt])
+
+
+def pair_accuracy(
+    result: SequencePairs, gt_poses: list[np.ndarray | None], config: PseudoPoseConfig
+) -> dict[int, dict[str, float]]:
+    """Per gap: candidates, kept share, median rotation (deg) / translation (cm) error vs GT.
+
+    Args:
+        result: :func:`estimate_pairs` output.
+        gt_poses: ground-truth ``T_world_cam`` per frame of the sequence (None: missing).
+        config: the settings used (for the gap of each pair).
+    """
+    by_gap: dict[int, list[tuple[float, float]]] = {g: [] for g in config.gaps}
+    position = {f: n for n, f in enumerate(result.frames)}
+    for pair in result.pairs:
+        gt_i, gt_j = gt_poses[pair.i], gt_poses[pair.j]
+        if gt_i is None or gt_j is None:
+            continue
+        gap = position[pair.j] - position[pair.i]
+        by_gap[gap].append(transform_difference(np.linalg.inv(gt_i) @ gt_j, pair.T_i_j))
+    table = {}
+    for gap in config.gaps:
+        errors = np.asarray(by_gap[gap]).reshape(-1, 2)
+        tried = result.candidates.get(gap, 0)
+        table[gap] = {
+            "candidates": tried,
+            "kept": result.kept.get(gap, 0),
+            "kept_share": result.kept.get(gap, 0) / tried if tried else 0.0,
+            "median_rotation_deg": float(np.median(errors[:, 0])) if len(errors) else math.nan,
+            "median_translation_cm": float(np.median(errors[:, 1]) * 100)
+            if len(errors)
+            else math.nan,
+            "rotation_acc_2deg": float(np.mean(errors[:, 0] < 2.0)) if len(errors) else math.nan,
+            "translation_acc_5cm": float(np.mean(errors[:, 1] < 0.05)) if len(errors) else math.nan,
+        }
+    return table
+
+
+def config_dict(config: PseudoPoseConfig) -> dict[str, Any]:
+    """JSON-friendly settings."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}
+
+
+def pairs_to_json(result: SequencePairs, config: PseudoPoseConfig, sequence: Any) -> dict:
+    """A JSON-friendly record of ``result`` (the cache of a run folder)."""
+    return {
+        "sequence": str(sequence.root),
+        "name": sequence.name,
+        "num_frames": len(sequence.frames),
+        "config": config_dict(config),
+        "frames": result.frames,
+        "segments": result.segments,
+        "candidates": {str(k): v for k, v in result.candidates.items()},
+        "kept": {str(k): v for k, v in result.kept.items()},
+        "stats": result.stats,
+        "pairs": [
+            {
+                "i": p.i,
+                "j": p.j,
+                "T_i_j": np.asarray(p.T_i_j).round(8).tolist(),
+                "fitness": round(p.fitness, 6),
+                "rmse": round(p.rmse, 6),
+            }
+            for p in result.pairs
+        ],
+    }
+
+
+def pairs_from_json(record: dict) -> list[PseudoPair]:
+    """The kept pairs of a :func:`pairs_to_json` record."""
+    return [
+        PseudoPair(
+            int(p["i"]), int(p["j"]), np.asarray(p["T_i_j"], np.float64), p["fitness"], p["rmse"]
+        )
+        for p in record["pairs"]
+    ]

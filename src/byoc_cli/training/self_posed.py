@@ -1,0 +1,412 @@
+"""The ``self-posed`` training variant: metric learning on pairs the video poses itself.
+
+No poses and no labels are read from the training data: each sequence's wide pairs and
+their relative poses come from :mod:`byoc_cli.training.pseudo_poses` (the tool's own
+registration, verified by fit and cycle consistency) and are cached in the run folder
+(``pseudo_pairs/NN-<sequence>.json``). Each step draws ``batch_size`` pairs, makes two
+augmented views of each (:mod:`byoc_cli.training.self_posed_data`), encodes all views in one
+batched sparse forward pass and applies a symmetric InfoNCE loss on up to ``num_positives``
+dense correspondences per pair. Validation (``val_dir``, posed sequences) measures the
+feature-match recall of frame pairs ``val_spacing`` frames apart.
+
+The run folder, checkpoints, metrics and exported weights follow the other variants
+(:mod:`byoc_cli.training.trainer`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from byoc_cli.errors import DatasetError, InputError
+from byoc_cli.io.atomic import atomic_write_text
+from byoc_cli.training.checkpoint import (
+    capture_rng_state,
+    load_latest_checkpoint,
+    restore_rng_state,
+    save_checkpoint,
+)
+from byoc_cli.training.config import TrainConfig
+from byoc_cli.training.metric_loss import info_nce, sample_matches
+from byoc_cli.training.pseudo_poses import (
+    PseudoPair,
+    PseudoPoseConfig,
+    estimate_pairs,
+    frame_points,
+    pairs_from_json,
+    pairs_to_json,
+)
+from byoc_cli.training.self_posed_data import (
+    AugmentConfig,
+    CachedFrame,
+    cache_frame,
+    make_pair_views,
+)
+
+log = logging.getLogger(__name__)
+
+PAIRS_DIR = "pseudo_pairs"
+#: the cache keeps the first point per voxel of this size relative to the encoder's voxel
+CACHE_VOXEL_FACTOR = 0.5
+#: feature-match recall of the validation (FCGF's protocol)
+FMR_INLIER_DISTANCE = 0.10
+FMR_INLIER_RATIO = 0.05
+FMR_SAMPLES = 5000
+
+
+def pseudo_config(config: TrainConfig) -> PseudoPoseConfig:
+    """The self-posing settings of a training configuration."""
+    return PseudoPoseConfig(voxel_size=config.voxel_size, gaps=config.pair_gaps, seed=config.seed)
+
+
+def discover_training_sequences(config: TrainConfig) -> list[Any]:
+    """The training sequences of ``config.rgbd_dir`` (depth only; poses are not used)."""
+    from byoc_cli.io.rgbd import discover_sequences
+
+    sequences = []
+    for root in config.rgbd_dir:
+        sequences += discover_sequences(
+            root, intrinsics=config.intrinsics, depth_scale=config.depth_scale
+        )
+    if not sequences:
+        raise DatasetError(f"no training sequence in {', '.join(config.rgbd_dir)}")
+    return sequences
+
+
+def load_or_estimate_pairs(
+    config: TrainConfig, run_dir: Path, sequences: list[Any], progress=None
+) -> list[list[PseudoPair]]:
+    """Per sequence, the cached self-posed pairs of the run (estimated on first use)."""
+    folder = run_dir / PAIRS_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    settings = pseudo_config(config)
+    out = []
+    for n, sequence in enumerate(sequences):
+        path = folder / f"{n:02d}-{sequence.name}.json"
+        if path.exists():
+            record = json.loads(path.read_text(encoding="utf-8"))
+        else:
+            t0 = time.perf_counter()
+            result = estimate_pairs(sequence, settings, progress)
+            record = pairs_to_json(result, settings, sequence)
+            record["seconds"] = round(time.perf_counter() - t0, 1)
+            atomic_write_text(path, json.dumps(record, indent=1))
+        log.info(
+            "%s: %d self-posed pairs (kept per gap %s)",
+            path.name,
+            len(record["pairs"]),
+            record["kept"],
+        )
+        out.append(pairs_from_json(record))
+    return out
+
+
+def build_frame_cache(
+    config: TrainConfig, sequences: list[Any], pairs: list[list[PseudoPair]]
+) -> dict[tuple[int, int], CachedFrame]:
+    """``(sequence, frame) -> CachedFrame`` for every frame of a kept pair."""
+    cache: dict[tuple[int, int], CachedFrame] = {}
+    voxel = CACHE_VOXEL_FACTOR * config.voxel_size
+    for s, (sequence, seq_pairs) in enumerate(zip(sequences, pairs, strict=True)):
+        for f in sorted({p.i for p in seq_pairs} | {p.j for p in seq_pairs}):
+            cache[(s, f)] = cache_frame(frame_points(sequence, f), voxel)
+    return cache
+
+
+def encode_views(encoder: torch.nn.Module, coords: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Features of several views in one batched forward pass."""
+    batch = torch.cat(
+        [torch.cat([c.new_full((len(c), 1), b), c], dim=1) for b, c in enumerate(coords)]
+    )
+    feats = torch.ones(len(batch), encoder.config.in_channels)
+    out = encoder(batch, feats)
+    return list(torch.split(out, [len(c) for c in coords]))
+
+
+def training_step(
+    encoder: torch.nn.Module,
+    batch: list[tuple[CachedFrame, CachedFrame, torch.Tensor]],
+    config: TrainConfig,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Loss of one batch of ``(frame_i, frame_j, T_i_j)`` and its log values."""
+    aug = AugmentConfig(config.aug_rotation_deg, config.aug_scale, config.aug_min_keep)
+    views = [make_pair_views(fi, fj, T, config.voxel_size, aug, generator) for fi, fj, T in batch]
+    coords = [c for v in views for c in (v.view_i.coords, v.view_j.coords)]
+    feats = encode_views(encoder, coords)
+    losses, positives = [], []
+    for n, v in enumerate(views):
+        matches = sample_matches(v.matches, config.num_positives, generator)
+        positives.append(len(matches))
+        losses.append(
+            info_nce(
+                feats[2 * n],
+                feats[2 * n + 1],
+                matches,
+                v.view_i.points,
+                temperature=config.temperature,
+            )
+        )
+    loss = torch.stack(losses).mean()
+    points = float(np.mean([len(c) for c in coords]))
+    return loss, {
+        "loss": float(loss.detach()),
+        "positives": float(np.mean(positives)),
+        "points": points,
+    }
+
+
+@torch.no_grad()
+def feature_match_validation(
+    encoder: torch.nn.Module, val_pairs: list[tuple[Any, int, int]], voxel_size: float, seed: int
+) -> dict[str, float]:
+    """FMR and mean inlier ratio (nearest neighbour in feature space) of posed frame pairs."""
+    from byoc_cli.geometry.voxel import voxelize
+    from byoc_cli.models.encoder import encode_voxels
+
+    was_training = encoder.training
+    encoder.eval()
+    generator = torch.Generator().manual_seed(seed)
+    ratios = []
+    cache: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def featured(sequence: Any, key: tuple[int, int], frame: int):
+        if key not in cache:
+            points = torch.from_numpy(frame_points(sequence, frame))
+            grid = voxelize(points, voxel_size)
+            cache[key] = (points[grid.point_index], encode_voxels(encoder, grid.coords))
+        return cache[key]
+
+    for s, (sequence, i, j) in enumerate(val_pairs):
+        del s
+        p_i, f_i = featured(sequence, (id(sequence), i), i)
+        p_j, f_j = featured(sequence, (id(sequence), j), j)
+        T_i_j = torch.from_numpy(np.linalg.inv(sequence.pose(i)) @ sequence.pose(j)).float()
+        pick = torch.randperm(len(p_j), generator=generator)[:FMR_SAMPLES]
+        nn_idx = torch.cdist(f_j[pick], f_i).argmin(dim=1)
+        moved = p_j[pick] @ T_i_j[:3, :3].T + T_i_j[:3, 3]
+        inlier = (moved - p_i[nn_idx]).norm(dim=1) < FMR_INLIER_DISTANCE
+        ratios.append(float(inlier.float().mean()))
+    encoder.train(was_training)
+    ratios_arr = np.asarray(ratios)
+    return {
+        "fmr": float(np.mean(ratios_arr > FMR_INLIER_RATIO)) if len(ratios) else float("nan"),
+        "inlier_ratio": float(ratios_arr.mean()) if len(ratios) else float("nan"),
+        "num_pairs": float(len(ratios)),
+    }
+
+
+def validation_pairs(config: TrainConfig) -> list[tuple[Any, int, int]]:
+    """Consecutive frames ``val_spacing`` apart of every posed validation sequence."""
+    from byoc_cli.io.rgbd import discover_sequences
+
+    pairs = []
+    for root in config.val_dir:
+        for sequence in discover_sequences(root, require_poses=True):
+            frames = list(range(0, len(sequence.frames), config.val_spacing))
+            pairs += [(sequence, a, b) for a, b in itertools.pairwise(frames)]
+    if config.val_max_pairs and len(pairs) > config.val_max_pairs:
+        pick = np.linspace(0, len(pairs) - 1, config.val_max_pairs).round().astype(int)
+        pairs = [pairs[k] for k in pick]
+    return pairs
+
+
+def _check_run_folder(run_dir: Path, resume: bool, config_file: str) -> None:
+    if not resume and (run_dir / config_file).exists():
+        raise InputError(
+            run_dir, "already holds a training run (use --resume to continue it, or another --out)"
+        )
+
+
+def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
+    """Train (or continue) a ``self-posed`` run; returns a ``trainer.TrainResult``."""
+    from byoc_cli.models.encoder import build_encoder
+    from byoc_cli.training.plot import plot_metrics
+    from byoc_cli.training.trainer import (
+        CONFIG_FILE,
+        METRICS_FILE,
+        PLOT_FILE,
+        WEIGHTS_FILE,
+        TrainResult,
+        _truncate_metrics,
+        read_metrics,
+        write_run_config,
+    )
+
+    run_dir = Path(config.out)
+    _check_run_folder(run_dir, resume, CONFIG_FILE)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    sequences = discover_training_sequences(config)
+    data_names = [str(s.root) for s in sequences]
+    write_run_config(run_dir, config, {"world_size": 1, "data": data_names})
+    pairs = load_or_estimate_pairs(config, run_dir, sequences)
+    flat = [(s, p) for s, seq_pairs in enumerate(pairs) for p in seq_pairs]
+    if not flat:
+        raise DatasetError("no self-posed pair passed verification in the training data")
+    frames = build_frame_cache(config, sequences, pairs)
+    val_pairs = validation_pairs(config) if config.val_dir else []
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        encoder = build_encoder(config.arch)
+    optimizer = torch.optim.Adam(
+        encoder.parameters(), lr=config.lr, eps=config.adam_eps, weight_decay=config.weight_decay
+    )
+    generator = torch.Generator().manual_seed(config.seed)
+    generators = {"sample": generator}
+    step = 0
+    if resume:
+        found = load_latest_checkpoint(run_dir)
+        if found is not None:
+            state, _ = found
+            encoder.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            step = int(state["step"])
+            restore_rng_state(state["rng"][0], generators)
+    metrics_path = run_dir / METRICS_FILE
+    _truncate_metrics(metrics_path, step)
+    result = TrainResult(run_dir, None, None, step)
+
+    def write_record(record: dict[str, Any]) -> None:
+        with open(metrics_path, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(record, sort_keys=True) + "\n")
+
+    def run_validation(at_step: int) -> dict[str, float]:
+        if not val_pairs:
+            return {}
+        t0 = time.perf_counter()
+        metrics = feature_match_validation(encoder, val_pairs, config.voxel_size, config.seed)
+        metrics["val_time_s"] = time.perf_counter() - t0
+        write_record({"kind": "val", "step": at_step, **metrics})
+        callbacks.call("on_validation", at_step, metrics)
+        return metrics
+
+    def checkpoint(at_step: int) -> None:
+        state = {
+            "model": encoder.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "step": at_step,
+            "epoch": 0,
+            "batch_in_epoch": 0,
+            "rng": [capture_rng_state(generators)],
+            "config": config.to_dict(),
+            "world_size": 1,
+        }
+        path = save_checkpoint(run_dir, at_step, state, keep=config.keep_checkpoints)
+        callbacks.call("on_checkpoint", at_step, path)
+
+    callbacks.call("on_start", step, config.steps)
+    if config.val_every and step == 0:
+        result.initial_validation = result.validation = run_validation(0)
+    encoder.train()
+    window: list[dict[str, float]] = []
+    t_window = time.perf_counter()
+    try:
+        while step < config.steps:
+            pick = torch.randint(len(flat), (config.batch_size,), generator=generator)
+            batch = []
+            for k in pick.tolist():
+                s, pair = flat[k]
+                batch.append(
+                    (frames[(s, pair.i)], frames[(s, pair.j)], torch.from_numpy(pair.T_i_j))
+                )
+            loss, values = training_step(encoder, batch, config, generator)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            step += 1
+            window.append(values)
+            last = step == config.steps
+            elapsed = time.perf_counter() - t_window
+            rate = len(window) / elapsed if elapsed > 0 else 0.0
+            from byoc_cli.training.trainer import StepInfo
+
+            eta = (config.steps - step) / rate if rate > 0 else float("nan")
+            callbacks.call(
+                "on_step", StepInfo(step, config.steps, {"loss": values["loss"]}, rate, eta)
+            )
+            if (config.log_every and step % config.log_every == 0) or last:
+                mean = {k: float(np.mean([w[k] for w in window])) for k in window[0]}
+                record = {
+                    "kind": "train",
+                    "step": step,
+                    **mean,
+                    "pairs_per_s": len(window) * config.batch_size / elapsed if elapsed else None,
+                    "steps_per_s": rate,
+                    "lr": config.lr,
+                    "time": time.time(),
+                }
+                write_record(record)
+                callbacks.call("on_log", record)
+                window, t_window = [], time.perf_counter()
+            if config.val_every and (step % config.val_every == 0 or last):
+                result.validation = run_validation(step)
+                plot_metrics(read_metrics(metrics_path), run_dir / PLOT_FILE, "self-posed")
+            if (config.checkpoint_every and step % config.checkpoint_every == 0) or last:
+                checkpoint(step)
+    except KeyboardInterrupt:
+        if step > 0:
+            checkpoint(step)
+        raise
+    result.steps = step
+    records = read_metrics(metrics_path)
+    train_records = [r for r in records if r.get("kind") == "train"]
+    if train_records:
+        result.first_loss = train_records[0]["loss"]
+        result.last_loss = train_records[-1]["loss"]
+    plot_metrics(records, run_dir / PLOT_FILE, "self-posed")
+    export = {"train_loss": result.last_loss} if result.last_loss is not None else {}
+    export.update({f"val_{k}": v for k, v in result.validation.items() if k != "val_time_s"})
+    result.weights_path = run_dir / WEIGHTS_FILE
+    result.weights_sha256 = export_encoder(
+        encoder, config, result.weights_path, data_names, step, export
+    )
+    return result
+
+
+def export_encoder(
+    encoder: torch.nn.Module,
+    config: TrainConfig,
+    path: Path,
+    data: list[str],
+    steps: int,
+    metrics: dict[str, float],
+) -> str:
+    """Write the encoder as a weights file (variant ``self-posed``); returns its SHA-256."""
+    import copy
+    import math
+
+    from byoc_cli.pipeline.weights import build_metadata, save_weights
+
+    model = copy.deepcopy(encoder).cpu().eval()
+    clean = {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
+    meta = build_metadata(
+        model,
+        voxel_size=config.voxel_size,
+        variant=config.variant,
+        data=data,
+        steps=steps,
+        seed=config.seed,
+        metrics=clean,
+    )
+    meta["training"]["recipe"] = {
+        k: config.to_dict()[k]
+        for k in (
+            "lr",
+            "batch_size",
+            "num_positives",
+            "temperature",
+            "aug_rotation_deg",
+            "aug_scale",
+            "aug_min_keep",
+            "pair_gaps",
+        )
+    }
+    return save_weights(path, model, meta)

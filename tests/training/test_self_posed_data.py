@@ -1,0 +1,109 @@
+"""Views, augmentation and correspondences of the self-posed variant."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from byoc_cli.geometry.voxel import voxelize
+from byoc_cli.training.self_posed_data import (
+    AugmentConfig,
+    cache_frame,
+    first_point_per_voxel,
+    make_pair_views,
+    match_views,
+    random_rotation,
+)
+
+
+def _cloud(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-1.0, 1.0, size=(n, 3)).astype(np.float32)
+
+
+def test_first_point_per_voxel_matches_voxelize():
+    points = _cloud(5000, 0)
+    ours = first_point_per_voxel(points, 0.1)
+    grid = voxelize(torch.from_numpy(points), 0.1)
+    assert np.array_equal(np.sort(ours), np.sort(grid.point_index.numpy()))
+
+
+def test_first_point_per_voxel_hand_case():
+    points = np.array([[0.01, 0, 0], [0.02, 0, 0], [0.15, 0, 0], [-0.05, 0, 0]], np.float32)
+    assert first_point_per_voxel(points, 0.1).tolist() == [0, 2, 3]
+    assert first_point_per_voxel(np.zeros((0, 3), np.float32), 0.1).shape == (0,)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.0, 180.0))
+def test_random_rotation_is_a_rotation_within_range(seed, max_angle):
+    R = random_rotation(max_angle, torch.Generator().manual_seed(seed))
+    assert torch.allclose(R @ R.T, torch.eye(3, dtype=R.dtype), atol=1e-10)
+    assert abs(torch.linalg.det(R).item() - 1.0) < 1e-10
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (R.trace().item() - 1) / 2))))
+    assert angle <= max_angle + 1e-6
+
+
+def _rigid(angle_deg: float, t: list[float]) -> torch.Tensor:
+    a = math.radians(angle_deg)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = torch.tensor(
+        [[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]]
+    )
+    T[:3, 3] = torch.tensor(t)
+    return T
+
+
+def test_match_views_recovers_known_pairs():
+    points_i = torch.from_numpy(_cloud(3000, 1))
+    T_i_j = _rigid(30.0, [0.2, -0.1, 0.05])
+    # view j sees the same points in its own frame: p_j = inv(T_i_j) p_i
+    T_j_i = torch.linalg.inv(T_i_j).float()
+    points_j = points_i @ T_j_i[:3, :3].T + T_j_i[:3, 3]
+    matches = match_views(points_i, points_j, T_i_j, 0.05)
+    assert len(matches) > 0.9 * len(voxelize(points_i, 0.05).coords) * 0.5
+    moved = points_j[matches[:, 1]] @ T_i_j[:3, :3].float().T + T_i_j[:3, 3].float()
+    dist = (moved - points_i[matches[:, 0]]).norm(dim=1)
+    assert float(dist.max()) < 0.05 * math.sqrt(3) + 1e-5
+    # each point is used at most once on each side
+    assert len(set(matches[:, 0].tolist())) == len(matches)
+    assert len(set(matches[:, 1].tolist())) == len(matches)
+
+
+def test_match_views_disjoint_and_empty():
+    points = torch.from_numpy(_cloud(100, 2))
+    far = points + 10.0
+    assert match_views(points, far, torch.eye(4, dtype=torch.float64), 0.05).shape == (0, 2)
+    empty = torch.zeros(0, 3)
+    assert match_views(empty, points, torch.eye(4, dtype=torch.float64), 0.05).shape == (0, 2)
+
+
+def test_make_pair_views_correspondences_hold_under_augmentation():
+    base = _cloud(20000, 3)
+    T_i_j = _rigid(20.0, [0.1, 0.0, 0.0])
+    T_j_i = np.linalg.inv(T_i_j.numpy())
+    frame_i = cache_frame(base, 0.0125)
+    frame_j = cache_frame((base @ T_j_i[:3, :3].T + T_j_i[:3, 3]).astype(np.float32), 0.0125)
+    gen = torch.Generator().manual_seed(0)
+    pair = make_pair_views(frame_i, frame_j, T_i_j, 0.025, AugmentConfig(90.0, 0.05, 0.7), gen)
+    assert pair.view_i.coords.dtype == torch.int64 and pair.view_i.coords.shape[1] == 3
+    assert len(pair.view_i.coords) == len(pair.view_i.points)
+    assert len(pair.matches) > 100
+    p_i = pair.view_i.points[pair.matches[:, 0]]
+    p_j = pair.view_j.points[pair.matches[:, 1]]
+    moved = p_j @ T_i_j[:3, :3].float().T + T_i_j[:3, 3].float()
+    assert float((moved - p_i).norm(dim=1).max()) < 0.025 * math.sqrt(3) + 1e-5
+    # the same seed gives the same views
+    again = make_pair_views(
+        frame_i,
+        frame_j,
+        T_i_j,
+        0.025,
+        AugmentConfig(90.0, 0.05, 0.7),
+        torch.Generator().manual_seed(0),
+    )
+    assert torch.equal(again.matches, pair.matches)
