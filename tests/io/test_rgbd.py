@@ -14,14 +14,20 @@ from PIL import Image
 
 from byoc_cli.errors import DatasetError, InputError, ShapeError
 from byoc_cli.io.rgbd import (
+    LAYOUTS,
     TUM_INTRINSICS,
     FrameError,
+    Layout,
     RGBDFrame,
     RGBDSequence,
+    SkippedFrame,
     backproject,
     discover_sequences,
     make_pairs,
     preprocess_frame,
+    register_layout,
+    registered_layouts,
+    unregister_layout,
 )
 
 K_FR1 = np.array([[517.3, 0.0, 318.6], [0.0, 516.5, 255.3], [0.0, 0.0, 1.0]])
@@ -490,6 +496,60 @@ def test_no_sequence_folder_errors(tmp_path):
     with pytest.warns(UserWarning, match="without a usable frame"):
         with pytest.raises(DatasetError, match="no usable frame"):
             discover_sequences(empty)
+
+
+def _toy_layout():
+    """A layout of the test's own: ``toy.txt`` lists depth images, one per line."""
+
+    def frames(folder, names, options):
+        listed = (folder / "toy.txt").read_text().split()
+        found = [RGBDFrame(k, folder / n, None, None, None) for k, n in enumerate(listed)]
+        return [f for f in found if f.depth_path.is_file()], [
+            SkippedFrame(f.depth_path.name, "depth file not found")
+            for f in found
+            if not f.depth_path.is_file()
+        ]
+
+    return Layout(
+        name="toy",
+        description="toy.txt",
+        depth_scale=100.0,
+        detect=lambda folder, names: "toy.txt" in names,
+        frames=frames,
+        intrinsics=lambda folder, root: (K_SMALL.copy(), (48, 64), "toy"),
+    )
+
+
+def test_a_registered_layout_is_discovered_before_redwood(tmp_path):
+    folder = tmp_path / "data" / "t"
+    _save_depth(folder / "depth" / "a.png", _raw_depth(value=150))
+    (folder / "toy.txt").write_text("depth/a.png depth/gone.png\n")
+    _o3d_json(folder / "intrinsic.json", K_SMALL)  # would also be a Redwood sequence
+    assert [s.layout for s in discover_sequences(tmp_path / "data")] == ["redwood"]
+    register_layout(_toy_layout(), before="redwood")
+    try:
+        assert [x.name for x in registered_layouts()] == [
+            "tum",
+            "3dmatch",
+            "scannet",
+            "toy",
+            "redwood",
+        ]
+        (seq,) = discover_sequences(tmp_path / "data")
+        assert seq.layout == "toy" and seq.name == "t" and seq.depth_scale == 100.0
+        assert len(seq) == 1 and seq.skipped == [SkippedFrame("gone.png", "depth file not found")]
+        assert seq.read_depth(0)[1, 1] == pytest.approx(1.5)
+        with pytest.raises(ValueError, match="registered already"):
+            register_layout(_toy_layout())
+        with pytest.raises(DatasetError, match=r"looked for .*toy\.txt"):
+            discover_sequences(tmp_path / "data" / "t" / "depth")
+    finally:
+        unregister_layout("toy")
+    assert [x.name for x in registered_layouts()] == list(LAYOUTS)
+    with pytest.raises(ValueError, match="no registered"):
+        register_layout(_toy_layout(), before="nope")
+    with pytest.raises(ValueError, match="no registered"):
+        unregister_layout("toy")
 
 
 def test_depth_scale_override(tmp_path):
