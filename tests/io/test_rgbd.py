@@ -204,13 +204,73 @@ def test_realsense_tabletop_3dmatch_layout(shared_data):
     assert inner.name == "seq-01" and np.array_equal(inner.K, seq.K)
 
 
+def _check_first_cloud(seq, max_depth):
+    """The first frame back-projects to a metric surface in front of the camera."""
+    depth = seq.read_depth(0)
+    points, pixel = backproject(depth, seq.K)
+    assert depth.shape == seq.depth_shape and len(points) > 0.5 * depth.size
+    z = points[:, 2]
+    assert z.min() > 0.1 and 0.5 < np.median(z) < 3.0 and np.percentile(z, 95) < max_depth
+    # horizontally adjacent pixels with depth are millimetres apart on a real surface
+    # (about z / fx), not metres apart as with a wrong depth scale or intrinsics
+    right = np.searchsorted(pixel, pixel + 1)
+    right = np.minimum(right, len(pixel) - 1)
+    adjacent = (pixel[right] == pixel + 1) & ((pixel + 1) % depth.shape[1] != 0)
+    gaps = np.linalg.norm(points[right[adjacent]] - points[adjacent], axis=1)
+    assert adjacent.sum() > 0.4 * depth.size and np.median(gaps) < 0.005
+
+
+@pytest.mark.realdata
+def test_tum_fr1_desk_full_depth_only_with_poses(shared_data):
+    folder = shared_data / "rgbd" / "tum_fr1_desk_full"
+    assert not (folder / "rgb.txt").exists()
+    (seq,) = discover_sequences(folder)
+    assert seq.layout == "tum" and seq.name == "tum_fr1_desk_full" and len(seq) == 298
+    assert seq.num_skipped == 0 and not seq.has_color and seq.has_poses
+    assert all(f.color_path is None for f in seq.frames)
+    with pytest.raises(FrameError, match="no colour"):
+        seq.read_color(0)
+    assert seq.depth_scale == 5000.0 and seq.depth_shape == (480, 640)
+    assert seq.intrinsics_source == str(folder / "intrinsics.json")
+    assert np.allclose(seq.K, _K(*TUM_INTRINSICS[1]))
+    stamps = np.array([f.timestamp for f in seq.frames])
+    assert np.all(np.diff(stamps) > 0) and 0.05 < np.median(np.diff(stamps)) < 0.09  # ~15 Hz
+    for i in (0, 150, 297):
+        T = seq.pose(i)
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) and T[3, 3] == 1.0
+    _check_first_cloud(seq, max_depth=4.0)
+    with pytest.raises(DatasetError, match="colour"):
+        discover_sequences(folder, require_color=True)
+
+
+@pytest.mark.realdata
+def test_realsense_office_redwood_depth_only_without_poses(shared_data):
+    folder = shared_data / "rgbd" / "realsense_office"
+    (seq,) = discover_sequences(folder)
+    assert seq.layout == "redwood" and seq.name == "realsense_office" and len(seq) == 193
+    assert seq.num_skipped == 0 and not seq.has_color and not seq.has_poses
+    assert all(f.pose is None and f.color_path is None for f in seq.frames)
+    assert [f.index for f in seq.frames] == list(range(193))
+    assert seq.frames[-1].depth_path.name == "000192.png"
+    assert seq.depth_scale == 1000.0 and seq.depth_shape == (480, 640)
+    assert seq.intrinsics_source == str(folder / "intrinsic.json")
+    assert np.array_equal(seq.K, _K(615.0, 615.0, 320.0, 240.0))
+    raw = np.asarray(Image.open(seq.frames[0].depth_path)).astype(np.float32)
+    assert np.allclose(seq.read_depth(0), raw / 1000.0)
+    _check_first_cloud(seq, max_depth=12.0)
+    with pytest.raises(DatasetError, match="poses"):
+        discover_sequences(folder, require_poses=True)
+
+
 @pytest.mark.realdata
 def test_discover_all_real_sequences_sorted(shared_data):
     seqs = discover_sequences(shared_data / "rgbd")
     names = [s.name for s in seqs]
     assert names == [
+        "realsense_office",
         "realsense_tabletop/seq-01",
         "tum_fr1_desk",
+        "tum_fr1_desk_full",
         "tum_fr1_rpy",
         "tum_fr1_xyz",
         "tum_fr3_cabinet",
