@@ -1,4 +1,5 @@
-"""The layers of CONTRIBUTING.md, checked on the import statements of every module."""
+"""The layers of CONTRIBUTING.md, checked on the import statements of every module: between
+packages, inside the packages split into one module per idea, and no import cycle."""
 
 from __future__ import annotations
 
@@ -50,7 +51,115 @@ def test_core_packages_respect_the_layers(package):
         for name in _imports(path):
             parts = name.split(".")
             if parts[0] in NO_UI or (parts[0] == "open3d"):
-                offences.append(f"{path.name}: {name}")
+                offences.append(f"{_module_name(path)}: {name}")
             if parts[0] == "byoc_cli" and len(parts) > 1 and parts[1] in FORBIDDEN[package]:
-                offences.append(f"{path.name}: {name}")
+                offences.append(f"{_module_name(path)}: {name}")
     assert not offences, f"{package} imports across its layer: {offences}"
+
+
+# ------------------------------------------------------------------ inside the split packages
+
+# package -> {module: rank}: a module imports only modules of its package with a LOWER rank
+# (same rank: not each other), so e.g. a layout module never reaches the registry or
+# discovery, and the parts of a split never import the module that assembles them.
+INTERNAL_RANKS = {
+    "byoc_cli.io.rgbd": {
+        "frames": 0,
+        "files": 0,
+        "pairs": 0,
+        "preprocess": 0,
+        "backproject": 0,
+        "sequence": 1,
+        "layout": 1,
+        "tum": 2,
+        "threedmatch": 2,
+        "scannet": 2,
+        "redwood": 2,
+        "registry": 3,
+        "discovery": 4,
+        "__init__": 5,
+    },
+    "byoc_cli.models.sparse": {
+        "maps": 0,
+        "ops": 1,
+        "tensor": 1,
+        "layers": 2,
+        "pointwise": 2,
+        "__init__": 3,
+    },
+    # the pieces of the trainer and of eval-fmr below the modules that assemble them
+    "byoc_cli.training": {"loaders": 0, "run_folder": 0, "trainer": 1},
+    "byoc_cli.evaluation": {"benchmark": 0, "fmr_protocol": 0, "fmr_summary": 1, "fmr": 2},
+}
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(SRC.parent).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+MODULES = {_module_name(p): p for p in SRC.rglob("*.py")}
+
+
+def _targets(path: Path, top_level_only: bool = False) -> set[str]:
+    """Modules of ours that ``path`` imports (``from pkg import sub`` counts as ``pkg.sub``)."""
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    found = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name in MODULES)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module not in MODULES:
+                continue
+            subs = {f"{node.module}.{a.name}" for a in node.names} & MODULES.keys()
+            found.update(subs or {node.module})
+            if len(subs) < len(node.names):
+                found.add(node.module)
+    return found
+
+
+@pytest.mark.parametrize("package", sorted(INTERNAL_RANKS))
+def test_split_packages_import_downwards(package):
+    ranks = INTERNAL_RANKS[package]
+    offences = []
+    for module, rank in ranks.items():
+        name = package if module == "__init__" else f"{package}.{module}"
+        assert name in MODULES, f"{name} is ranked but does not exist"
+        for target in _targets(MODULES[name]):
+            if target == package or not target.startswith(package + "."):
+                continue
+            other = target[len(package) + 1 :].split(".")[0]
+            if other in ranks and ranks[other] >= rank:
+                offences.append(f"{name} -> {target}")
+    assert not offences, f"imports against the order inside {package}: {offences}"
+
+
+def test_split_packages_rank_every_module():
+    for package in ("byoc_cli.io.rgbd", "byoc_cli.models.sparse"):
+        ranked = {f"{package}.{m}" for m in INTERNAL_RANKS[package] if m != "__init__"}
+        present = {m for m in MODULES if m.startswith(package + ".")}
+        assert present == ranked, f"{package}: rank the new module(s) {present - ranked}"
+
+
+def test_no_import_cycle_at_module_level():
+    graph = {name: _targets(path, top_level_only=True) - {name} for name, path in MODULES.items()}
+    state: dict[str, int] = {}  # 1 visiting, 2 done
+    stack: list[str] = []
+
+    def visit(name: str) -> None:
+        state[name] = 1
+        stack.append(name)
+        for target in sorted(graph[name]):
+            if state.get(target) == 1:
+                cycle = [*stack[stack.index(target) :], target]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if target not in state:
+                visit(target)
+        stack.pop()
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name)

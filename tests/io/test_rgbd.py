@@ -14,14 +14,20 @@ from PIL import Image
 
 from byoc_cli.errors import DatasetError, InputError, ShapeError
 from byoc_cli.io.rgbd import (
+    LAYOUTS,
     TUM_INTRINSICS,
     FrameError,
+    Layout,
     RGBDFrame,
     RGBDSequence,
+    SkippedFrame,
     backproject,
     discover_sequences,
     make_pairs,
     preprocess_frame,
+    register_layout,
+    registered_layouts,
+    unregister_layout,
 )
 
 K_FR1 = np.array([[517.3, 0.0, 318.6], [0.0, 516.5, 255.3], [0.0, 0.0, 1.0]])
@@ -198,13 +204,73 @@ def test_realsense_tabletop_3dmatch_layout(shared_data):
     assert inner.name == "seq-01" and np.array_equal(inner.K, seq.K)
 
 
+def _check_first_cloud(seq, max_depth):
+    """The first frame back-projects to a metric surface in front of the camera."""
+    depth = seq.read_depth(0)
+    points, pixel = backproject(depth, seq.K)
+    assert depth.shape == seq.depth_shape and len(points) > 0.5 * depth.size
+    z = points[:, 2]
+    assert z.min() > 0.1 and 0.5 < np.median(z) < 3.0 and np.percentile(z, 95) < max_depth
+    # horizontally adjacent pixels with depth are millimetres apart on a real surface
+    # (about z / fx), not metres apart as with a wrong depth scale or intrinsics
+    right = np.searchsorted(pixel, pixel + 1)
+    right = np.minimum(right, len(pixel) - 1)
+    adjacent = (pixel[right] == pixel + 1) & ((pixel + 1) % depth.shape[1] != 0)
+    gaps = np.linalg.norm(points[right[adjacent]] - points[adjacent], axis=1)
+    assert adjacent.sum() > 0.4 * depth.size and np.median(gaps) < 0.005
+
+
+@pytest.mark.realdata
+def test_tum_fr1_desk_full_depth_only_with_poses(shared_data):
+    folder = shared_data / "rgbd" / "tum_fr1_desk_full"
+    assert not (folder / "rgb.txt").exists()
+    (seq,) = discover_sequences(folder)
+    assert seq.layout == "tum" and seq.name == "tum_fr1_desk_full" and len(seq) == 298
+    assert seq.num_skipped == 0 and not seq.has_color and seq.has_poses
+    assert all(f.color_path is None for f in seq.frames)
+    with pytest.raises(FrameError, match="no colour"):
+        seq.read_color(0)
+    assert seq.depth_scale == 5000.0 and seq.depth_shape == (480, 640)
+    assert seq.intrinsics_source == str(folder / "intrinsics.json")
+    assert np.allclose(seq.K, _K(*TUM_INTRINSICS[1]))
+    stamps = np.array([f.timestamp for f in seq.frames])
+    assert np.all(np.diff(stamps) > 0) and 0.05 < np.median(np.diff(stamps)) < 0.09  # ~15 Hz
+    for i in (0, 150, 297):
+        T = seq.pose(i)
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) and T[3, 3] == 1.0
+    _check_first_cloud(seq, max_depth=4.0)
+    with pytest.raises(DatasetError, match="colour"):
+        discover_sequences(folder, require_color=True)
+
+
+@pytest.mark.realdata
+def test_realsense_office_redwood_depth_only_without_poses(shared_data):
+    folder = shared_data / "rgbd" / "realsense_office"
+    (seq,) = discover_sequences(folder)
+    assert seq.layout == "redwood" and seq.name == "realsense_office" and len(seq) == 193
+    assert seq.num_skipped == 0 and not seq.has_color and not seq.has_poses
+    assert all(f.pose is None and f.color_path is None for f in seq.frames)
+    assert [f.index for f in seq.frames] == list(range(193))
+    assert seq.frames[-1].depth_path.name == "000192.png"
+    assert seq.depth_scale == 1000.0 and seq.depth_shape == (480, 640)
+    assert seq.intrinsics_source == str(folder / "intrinsic.json")
+    assert np.array_equal(seq.K, _K(615.0, 615.0, 320.0, 240.0))
+    raw = np.asarray(Image.open(seq.frames[0].depth_path)).astype(np.float32)
+    assert np.allclose(seq.read_depth(0), raw / 1000.0)
+    _check_first_cloud(seq, max_depth=12.0)
+    with pytest.raises(DatasetError, match="poses"):
+        discover_sequences(folder, require_poses=True)
+
+
 @pytest.mark.realdata
 def test_discover_all_real_sequences_sorted(shared_data):
     seqs = discover_sequences(shared_data / "rgbd")
     names = [s.name for s in seqs]
     assert names == [
+        "realsense_office",
         "realsense_tabletop/seq-01",
         "tum_fr1_desk",
+        "tum_fr1_desk_full",
         "tum_fr1_rpy",
         "tum_fr1_xyz",
         "tum_fr3_cabinet",
@@ -490,6 +556,60 @@ def test_no_sequence_folder_errors(tmp_path):
     with pytest.warns(UserWarning, match="without a usable frame"):
         with pytest.raises(DatasetError, match="no usable frame"):
             discover_sequences(empty)
+
+
+def _toy_layout():
+    """A layout of the test's own: ``toy.txt`` lists depth images, one per line."""
+
+    def frames(folder, names, options):
+        listed = (folder / "toy.txt").read_text().split()
+        found = [RGBDFrame(k, folder / n, None, None, None) for k, n in enumerate(listed)]
+        return [f for f in found if f.depth_path.is_file()], [
+            SkippedFrame(f.depth_path.name, "depth file not found")
+            for f in found
+            if not f.depth_path.is_file()
+        ]
+
+    return Layout(
+        name="toy",
+        description="toy.txt",
+        depth_scale=100.0,
+        detect=lambda folder, names: "toy.txt" in names,
+        frames=frames,
+        intrinsics=lambda folder, root: (K_SMALL.copy(), (48, 64), "toy"),
+    )
+
+
+def test_a_registered_layout_is_discovered_before_redwood(tmp_path):
+    folder = tmp_path / "data" / "t"
+    _save_depth(folder / "depth" / "a.png", _raw_depth(value=150))
+    (folder / "toy.txt").write_text("depth/a.png depth/gone.png\n")
+    _o3d_json(folder / "intrinsic.json", K_SMALL)  # would also be a Redwood sequence
+    assert [s.layout for s in discover_sequences(tmp_path / "data")] == ["redwood"]
+    register_layout(_toy_layout(), before="redwood")
+    try:
+        assert [x.name for x in registered_layouts()] == [
+            "tum",
+            "3dmatch",
+            "scannet",
+            "toy",
+            "redwood",
+        ]
+        (seq,) = discover_sequences(tmp_path / "data")
+        assert seq.layout == "toy" and seq.name == "t" and seq.depth_scale == 100.0
+        assert len(seq) == 1 and seq.skipped == [SkippedFrame("gone.png", "depth file not found")]
+        assert seq.read_depth(0)[1, 1] == pytest.approx(1.5)
+        with pytest.raises(ValueError, match="registered already"):
+            register_layout(_toy_layout())
+        with pytest.raises(DatasetError, match=r"looked for .*toy\.txt"):
+            discover_sequences(tmp_path / "data" / "t" / "depth")
+    finally:
+        unregister_layout("toy")
+    assert [x.name for x in registered_layouts()] == list(LAYOUTS)
+    with pytest.raises(ValueError, match="no registered"):
+        register_layout(_toy_layout(), before="nope")
+    with pytest.raises(ValueError, match="no registered"):
+        unregister_layout("toy")
 
 
 def test_depth_scale_override(tmp_path):

@@ -9,7 +9,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.models import sparse as sparse_module
 from byoc_cli.models.sparse import (
     CoordinateManager,
     SparseBatchNorm,
@@ -22,6 +21,7 @@ from byoc_cli.models.sparse import (
     sparse_cat,
     sparse_conv,
 )
+from byoc_cli.models.sparse import maps as sparse_module
 
 F64 = torch.float64
 

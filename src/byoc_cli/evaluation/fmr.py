@@ -19,39 +19,26 @@ the 3DMatch protocol; also reported over all pairs), and the success rate (rotat
 
 from __future__ import annotations
 
-import hashlib
-import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import numpy as np
 import torch
 
-from byoc_cli.errors import DatasetError
+from byoc_cli.evaluation.benchmark import BenchmarkPair, PairSet, load_benchmark_pairs
 from byoc_cli.evaluation.cache import FeatureCache, file_identity
+from byoc_cli.evaluation.fmr_protocol import (
+    FmrConfig,
+    feature_metrics,
+    pair_seed,
+    sample_pair_subsets,
+)
+from byoc_cli.evaluation.fmr_summary import summarize_fmr
 from byoc_cli.evaluation.methods import Method, feature_specs, icp_points
-from byoc_cli.evaluation.metrics import (
-    correspondence_inlier_ratio,
-    error_summary,
-    nn_inlier_ratio,
-    pose_errors,
-    recall_by_group,
-    registration_rmse,
-)
+from byoc_cli.evaluation.metrics import pose_errors, registration_rmse
 from byoc_cli.evaluation.progress import NullProgress, Progress
-from byoc_cli.io.threedmatch import (
-    BenchmarkScene,
-    fragment_path,
-    read_gt_info,
-    read_gt_log,
-    read_gt_overlap,
-)
-from byoc_cli.matching import ratio_test_correspondences
 from byoc_cli.pipeline.features import CloudFeatures
-from byoc_cli.pipeline.register import sample_subset
 
 __all__ = [
     "BenchmarkPair",
@@ -64,70 +51,6 @@ __all__ = [
     "sample_pair_subsets",
     "summarize_fmr",
 ]
-
-
-@dataclass(frozen=True)
-class FmrConfig:
-    """Settings of :func:`evaluate_fmr` (the protocol's constants by default).
-
-    Attributes:
-        tau1: inlier distance (m).
-        tau2: inlier-ratio threshold of a recalled pair.
-        num_samples: points sampled per fragment (0 = all kept points).
-        top_k: ratio-test correspondences kept per direction for ``corr``.
-        rmse_threshold: registration recall threshold on the official RMSE (m).
-        success_rotation_deg, success_translation_m: the success-rate thresholds.
-        seed: base seed of every random choice.
-    """
-
-    tau1: float = 0.10
-    tau2: float = 0.05
-    num_samples: int = 5000
-    top_k: int = 200
-    rmse_threshold: float = 0.2
-    success_rotation_deg: float = 15.0
-    success_translation_m: float = 0.30
-    seed: int = 0
-
-
-class BenchmarkPair(NamedTuple):
-    """One ground-truth pair.
-
-    Attributes:
-        scene: scene name.
-        i: target fragment; j: source fragment.
-        T_gt: ``(4, 4)`` float64, maps fragment ``j`` into fragment ``i``.
-        info: ``(6, 6)`` information matrix, or None when ``gt.info`` lacks the pair.
-        overlap: from ``gt_overlap.log``, or None.
-        source, target: the fragment files.
-    """
-
-    scene: str
-    i: int
-    j: int
-    T_gt: np.ndarray
-    info: np.ndarray | None
-    overlap: float | None
-    source: Path
-    target: Path
-
-
-class PairSet(NamedTuple):
-    """Pairs selected for evaluation.
-
-    Attributes:
-        pairs: the pairs to evaluate, scene by scene in ``gt.log`` order.
-        scenes: the scenes used.
-        num_listed: pairs listed by the selected scenes' ``gt.log`` (before ``limit``).
-        missing_fragments: fragment files named by ``gt.log`` but absent (``allow_missing``).
-        skipped_pairs: ``(scene, i, j)`` left out because a fragment is missing.
-    """
-
-    pairs: list[BenchmarkPair]
-    scenes: list[BenchmarkScene]
-    num_listed: int
-    missing_fragments: list[str]
-    skipped_pairs: list[tuple[str, int, int]]
 
 
 class FmrResult(NamedTuple):
@@ -145,85 +68,6 @@ class FmrResult(NamedTuple):
     cache_hits: int
     cache_misses: int
     seconds: float
-
-
-def pair_seed(seed: int, scene: str, i: int, j: int) -> int:
-    """The seed of one pair: a hash of ``(seed, scene, i, j)`` in ``[0, 2**63)``."""
-    digest = hashlib.sha256(f"{seed}/{scene}/{i}/{j}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") >> 1
-
-
-def sample_pair_subsets(
-    num_src: int, num_tgt: int, num_samples: int, seed: int
-) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """The subsets of one pair: source first, then target, from one generator seeded ``seed``.
-
-    Same draws as :func:`byoc_cli.pipeline.register.estimate_transform` with
-    ``max_points=num_samples`` and the same seed. None means "all points".
-    """
-    generator = torch.Generator().manual_seed(seed)
-    idx_src = sample_subset(num_src, num_samples, generator)
-    idx_tgt = sample_subset(num_tgt, num_samples, generator)
-    return idx_src, idx_tgt
-
-
-def load_benchmark_pairs(
-    scenes: Sequence[BenchmarkScene], limit: int | None = None, allow_missing: bool = False
-) -> PairSet:
-    """Read the ground truth of ``scenes`` and check that the fragments exist.
-
-    Args:
-        scenes: from :func:`byoc_cli.io.threedmatch.discover_benchmark`.
-        limit: at most this many pairs per scene (the first ones of ``gt.log``).
-        allow_missing: skip pairs whose fragment is missing instead of raising.
-
-    Returns:
-        :class:`PairSet`.
-
-    Raises:
-        InputError: a malformed ``gt.log``, ``gt.info`` or ``gt_overlap.log``.
-        DatasetError: a fragment named by ``gt.log`` is missing (without ``allow_missing``);
-            the message names the fragment and the ``gt.log`` line.
-    """
-    pairs: list[BenchmarkPair] = []
-    missing: list[str] = []
-    skipped: list[tuple[str, int, int]] = []
-    listed = 0
-    for scene in scenes:
-        records = read_gt_log(scene.gt_log)
-        listed += len(records)
-        infos = {}
-        if scene.gt_info is not None:
-            infos = {(r.i, r.j): r.info for r in read_gt_info(scene.gt_info)}
-        overlaps = read_gt_overlap(scene.gt_overlap) if scene.gt_overlap is not None else {}
-        if limit is not None:
-            records = records[:limit]
-        for rec in records:
-            source, target = fragment_path(scene, rec.j), fragment_path(scene, rec.i)
-            absent = [p for p in (target, source) if not p.is_file()]
-            if absent:
-                if not allow_missing:
-                    raise DatasetError(
-                        absent[0],
-                        f"fragment not found (named by {scene.gt_log} line {rec.line}, pair "
-                        f"{rec.i} {rec.j}); pass --allow-missing to skip such pairs",
-                    )
-                missing += [str(p) for p in absent if str(p) not in missing]
-                skipped.append((scene.name, rec.i, rec.j))
-                continue
-            pairs.append(
-                BenchmarkPair(
-                    scene.name,
-                    rec.i,
-                    rec.j,
-                    rec.T_tgt_src,
-                    infos.get((rec.i, rec.j)),
-                    overlaps.get((rec.i, rec.j)),
-                    source,
-                    target,
-                )
-            )
-    return PairSet(pairs, list(scenes), listed, missing, skipped)
 
 
 def _read_fragment(path: Path) -> torch.Tensor:
@@ -260,35 +104,6 @@ class _SceneClouds:
         if path not in self.icp:
             self.icp[path] = icp_points(self.points(path))
         return self.icp[path]
-
-
-def _feature_metrics(
-    src: CloudFeatures, tgt: CloudFeatures, T_gt: torch.Tensor, seed: int, config: FmrConfig
-) -> dict[str, Any]:
-    idx_src, idx_tgt = sample_pair_subsets(
-        len(src.points), len(tgt.points), config.num_samples, seed
-    )
-    ps, fs = (
-        (src.points, src.feats) if idx_src is None else (src.points[idx_src], src.feats[idx_src])
-    )
-    pt, ft = (
-        (tgt.points, tgt.feats) if idx_tgt is None else (tgt.points[idx_tgt], tgt.feats[idx_tgt])
-    )
-    nn = nn_inlier_ratio(ps, fs, pt, ft, T_gt, config.tau1)
-    corr = ratio_test_correspondences(fs, ft, k=config.top_k)
-    corr_ratio = correspondence_inlier_ratio(ps[corr.src_idx], pt[corr.tgt_idx], T_gt, config.tau1)
-    return {
-        "num_points_src": len(src.points),
-        "num_points_tgt": len(tgt.points),
-        "num_samples_src": int(ps.shape[0]),
-        "num_samples_tgt": int(pt.shape[0]),
-        "inlier_ratio": nn.inlier_ratio,
-        "num_matches": nn.num_matches,
-        "recalled": nn.inlier_ratio >= config.tau2,
-        "corr_inlier_ratio": corr_ratio,
-        "num_correspondences": int(corr.src_idx.numel()),
-        "corr_recalled": corr_ratio >= config.tau2,
-    }
 
 
 def evaluate_fmr(
@@ -359,7 +174,7 @@ def _evaluate_pair(pair, methods, specs, clouds, config, needs_icp) -> dict[str,
     for spec in specs:
         src = clouds.features(spec, pair.source)
         tgt = clouds.features(spec, pair.target)
-        record["features"][spec.key] = _feature_metrics(src, tgt, T_gt, seed, config)
+        record["features"][spec.key] = feature_metrics(src, tgt, T_gt, seed, config)
     icp_src = clouds.icp_cloud(pair.source) if needs_icp else None
     icp_tgt = clouds.icp_cloud(pair.target) if needs_icp else None
     for method in methods:
@@ -388,89 +203,3 @@ def _evaluate_pair(pair, methods, specs, clouds, config, needs_icp) -> dict[str,
             "seconds": seconds,
         }
     return record
-
-
-def _recall_dict(summary) -> dict[str, Any]:
-    return {
-        "mean_over_scenes": summary.mean,
-        "std_over_scenes": summary.std,
-        "pooled": summary.pooled,
-        "num_pairs": summary.num_pairs,
-        "per_scene": {
-            scene: {"value": value, "num_pairs": n}
-            for scene, (value, n) in summary.per_group.items()
-        },
-    }
-
-
-def summarize_fmr(
-    records: Sequence[dict[str, Any]], methods: Sequence[Method], config: FmrConfig
-) -> dict[str, dict[str, Any]]:
-    """Per-method summaries of per-pair records.
-
-    Returns:
-        ``{method: {...}}`` with ``fmr``, ``corr_fmr``, ``inlier_ratio``, ``corr_inlier_ratio``
-        (each: ``mean_over_scenes``, ``std_over_scenes``, ``pooled``, ``num_pairs``,
-        ``per_scene``; None for methods without features), ``registration_recall``
-        (official pairs ``j - i > 1`` with ``gt.info``; None when no pair has it),
-        ``registration_recall_all_pairs``, ``success_rate``, ``rotation_error_deg`` and
-        ``translation_error_cm`` (mean, median over all pairs), ``num_failed``,
-        ``seconds_per_pair``.
-    """
-    scenes = [r["scene"] for r in records]
-    out: dict[str, dict[str, Any]] = {}
-    for method in methods:
-        rows = [r["methods"][method.name] for r in records]
-        summary: dict[str, Any] = {"num_pairs": len(records)}
-        if method.features is not None and records:
-            feats = [r["features"][method.features.key] for r in records]
-            summary["fmr"] = _recall_dict(recall_by_group([f["recalled"] for f in feats], scenes))
-            summary["corr_fmr"] = _recall_dict(
-                recall_by_group([f["corr_recalled"] for f in feats], scenes)
-            )
-            summary["inlier_ratio"] = _recall_dict(
-                recall_by_group(
-                    [f["recalled"] for f in feats], scenes, [f["inlier_ratio"] for f in feats]
-                )
-            )
-            summary["corr_inlier_ratio"] = _recall_dict(
-                recall_by_group(
-                    [f["corr_recalled"] for f in feats],
-                    scenes,
-                    [f["corr_inlier_ratio"] for f in feats],
-                )
-            )
-        else:
-            summary.update(fmr=None, corr_fmr=None, inlier_ratio=None, corr_inlier_ratio=None)
-        for key, keep in (
-            ("registration_recall", lambda r: r["official"] and r["has_info"]),
-            ("registration_recall_all_pairs", lambda r: r["has_info"]),
-        ):
-            chosen = [r for r in records if keep(r)]
-            if chosen:
-                flags = [r["methods"][method.name]["registered"] for r in chosen]
-                result = _recall_dict(recall_by_group(flags, [r["scene"] for r in chosen]))
-                result["num_degenerate_info"] = sum(
-                    1
-                    for r in chosen
-                    if r["methods"][method.name]["rmse_m"] is None
-                    or math.isnan(r["methods"][method.name]["rmse_m"])
-                )
-                summary[key] = result
-            else:
-                summary[key] = None
-        summary["success_rate"] = (
-            _recall_dict(recall_by_group([row["success"] for row in rows], scenes))
-            if rows
-            else None
-        )
-        rot = error_summary([row["rotation_error_deg"] for row in rows], ())
-        trans = error_summary([100.0 * row["translation_error_m"] for row in rows], ())
-        summary["rotation_error_deg"] = {"mean": rot.mean, "median": rot.median}
-        summary["translation_error_cm"] = {"mean": trans.mean, "median": trans.median}
-        summary["num_failed"] = sum(1 for row in rows if row["failed"])
-        summary["seconds_per_pair"] = (
-            float(np.mean([row["seconds"] for row in rows])) if rows else float("nan")
-        )
-        out[method.name] = summary
-    return out

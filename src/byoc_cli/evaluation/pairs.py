@@ -228,7 +228,7 @@ class _Memory:
 
 
 def _pair_seed(seed: int, name: str) -> int:
-    from byoc_cli.evaluation.fmr import pair_seed
+    from byoc_cli.evaluation.fmr_protocol import pair_seed
 
     return pair_seed(seed, name, 0, 0)
 

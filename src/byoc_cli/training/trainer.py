@@ -1,12 +1,8 @@
-"""The training runner: data, model, optimiser, checkpoints, validation, weights export.
+"""The training loop: model, optimiser, steps, logging, validation, checkpoints, export.
 
-A run folder holds::
-
-    config.json              the effective configuration (with the code version)
-    metrics.jsonl            one JSON object per log line ("train") or validation ("val")
-    checkpoints/step-N.pt    the newest checkpoints (atomic), enough to resume exactly
-    training.png             losses and validation accuracy
-    weights.safetensors      the final geometric encoder (weights-spec format)
+The data comes from :mod:`.loaders`; the run folder (``config.json``, ``metrics.jsonl``,
+weights export, resuming a run's configuration) is :mod:`.run_folder`; the names of both
+that callers used from here are re-exported.
 
 Resuming from a checkpoint restores the model, the optimiser, every RNG state and the
 position in the data order, so a killed run that is resumed ends with bit-identical weights
@@ -18,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 import warnings
 from collections.abc import Callable
@@ -27,23 +22,15 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
-from torch.utils.data import DataLoader
 
-from byoc_cli.errors import DatasetError, InputError
+from byoc_cli.errors import InputError
 from byoc_cli.training.checkpoint import (
     capture_rng_state,
     load_latest_checkpoint,
     restore_rng_state,
     save_checkpoint,
 )
-from byoc_cli.training.config import TrainConfig, config_from_json
-from byoc_cli.training.data import (
-    PairDataset,
-    ResumableSampler,
-    collate_pairs,
-    sequence_name,
-    worker_init,
-)
+from byoc_cli.training.config import TrainConfig
 from byoc_cli.training.distributed import (
     DistInfo,
     barrier,
@@ -51,14 +38,37 @@ from byoc_cli.training.distributed import (
     init_distributed,
     mean_across,
 )
+from byoc_cli.training.loaders import ResumableLoader, build_datasets
 from byoc_cli.training.model import ByocModel, LossTerms
 from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics, read_metrics
+from byoc_cli.training.run_folder import (
+    CONFIG_FILE,
+    WEIGHTS_FILE,
+    export_weights,
+    read_run_config,
+    resume_config,
+    truncate_metrics,
+    write_run_config,
+)
 from byoc_cli.training.validate import validate
 
-log = logging.getLogger("byoc.train")
+__all__ = [
+    "CONFIG_FILE",
+    "WEIGHTS_FILE",
+    "StepInfo",
+    "TrainCallbacks",
+    "TrainResult",
+    "build_datasets",
+    "build_model",
+    "build_optimizer",
+    "export_weights",
+    "read_run_config",
+    "resume_config",
+    "train",
+    "write_run_config",
+]
 
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "weights.safetensors"
+log = logging.getLogger("byoc.train")
 
 
 class StepInfo(NamedTuple):
@@ -119,112 +129,6 @@ class TrainResult:
     initial_validation: dict[str, float] = field(default_factory=dict)
 
 
-# ---------------------------------------------------------------------------- data
-def _discover(roots: tuple[str, ...], config: TrainConfig, need_color: bool, label: str) -> list:
-    from byoc_cli.io.rgbd import discover_sequences
-
-    intrinsics = Path(config.intrinsics) if config.intrinsics else None
-    found = []
-    for root in roots:
-        path = Path(root)
-        if not path.is_dir():
-            raise DatasetError(
-                path,
-                f"{label} folder does not exist"
-                if not path.exists()
-                else f"{label} path is not a folder",
-            )
-        seqs = discover_sequences(
-            path, intrinsics=intrinsics, depth_scale=config.depth_scale, require_color=need_color
-        )
-        if not seqs:
-            raise DatasetError(path, f"no RGB-D sequence found in this {label} folder")
-        found.extend(seqs)
-    return found
-
-
-def build_datasets(config: TrainConfig) -> tuple[PairDataset, PairDataset | None, list[str]]:
-    """Training pairs, validation pairs (or None) and the training sequences' names.
-
-    Raises:
-        DatasetError: a folder is missing, holds no sequence, or gives no pair.
-    """
-    if not config.rgbd_dir:
-        raise DatasetError("rgbd_dir", "no training folder given (--rgbd-dir)")
-    train_seqs = _discover(config.rgbd_dir, config, config.uses_visual, "training")
-    train = PairDataset(
-        train_seqs,
-        config.view_spacing,
-        "train",
-        config.image_size,
-        config.voxel_size,
-        use_color=config.uses_visual,
-    )
-    if len(train) < config.batch_size:
-        lengths = ", ".join(str(len(s.frames)) for s in train_seqs)
-        raise DatasetError(
-            config.rgbd_dir[0],
-            f"{len(train)} training pair(s) at view spacing {config.view_spacing} (sequences of "
-            f"{lengths} frames), fewer than the batch size {config.batch_size}",
-        )
-    names = [sequence_name(s, f"{config.rgbd_dir[0]}#{k}") for k, s in enumerate(train_seqs)]
-    val = None
-    if config.val_dir:
-        val_seqs = _discover(config.val_dir, config, False, "validation")
-        posed = [s for s in val_seqs if getattr(s, "has_poses", True)]
-        if not posed:
-            raise DatasetError(config.val_dir[0], "no validation sequence with poses")
-        val = PairDataset(
-            posed,
-            config.val_spacing,
-            "val",
-            config.image_size,
-            config.voxel_size,
-            use_color=False,
-            with_poses=True,
-        ).subset(config.val_max_pairs)
-        if len(val) == 0:
-            raise DatasetError(
-                config.val_dir[0], f"no validation pair at --val-spacing {config.val_spacing}"
-            )
-    return train, val, names
-
-
-# ---------------------------------------------------------------------------- run folder
-def write_run_config(
-    run_dir: Path, config: TrainConfig, extra: dict[str, Any] | None = None
-) -> None:
-    """Write ``config.json`` (the effective configuration and the code version)."""
-    from byoc_cli import __version__
-    from byoc_cli.io.atomic import atomic_write_text
-
-    doc = {"byoc_cli_version": __version__, "config": config.to_dict(), **(extra or {})}
-    atomic_write_text(run_dir / CONFIG_FILE, json.dumps(doc, indent=2, sort_keys=True) + "\n")
-
-
-def read_run_config(run_dir: str | Path) -> TrainConfig:
-    """The configuration saved in a run folder.
-
-    Raises:
-        InputError: not a run folder.
-    """
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise InputError(run_dir, "run folder does not exist")
-    return config_from_json(run_dir / CONFIG_FILE)
-
-
-def _truncate_metrics(path: Path, step: int) -> None:
-    """Drop the records written after ``step`` (a killed run may have logged past its last
-    checkpoint); rewrite atomically."""
-    from byoc_cli.io.atomic import atomic_write_text
-
-    if not path.exists():
-        return
-    keep = [r for r in read_metrics(path) if int(r.get("step", 0)) <= step]
-    atomic_write_text(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in keep))
-
-
 # ---------------------------------------------------------------------------- helpers
 def _amp_dtype(config: TrainConfig, device: torch.device) -> torch.dtype | None:
     use = config.amp if config.amp is not None else device.type == "cuda"
@@ -267,94 +171,7 @@ def build_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.
     )
 
 
-def _geometric_for_export(model: ByocModel, config: TrainConfig) -> torch.nn.Module:
-    if model.geometric is not None:
-        return model.geometric
-    from byoc_cli.models.encoder import build_encoder
-
-    warnings.warn(
-        f"variant {config.variant} trains no geometric encoder: the exported weights "
-        "hold a randomly initialised one",
-        stacklevel=2,
-    )
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        return build_encoder(config.arch)
-
-
-def export_weights(
-    model: ByocModel,
-    config: TrainConfig,
-    path: Path,
-    data: list[str],
-    steps: int,
-    metrics: dict[str, float],
-) -> str:
-    """Write the geometric encoder as a weights file; returns its SHA-256."""
-    import copy
-
-    from byoc_cli.pipeline.weights import build_metadata, save_weights
-
-    encoder = copy.deepcopy(_geometric_for_export(model, config)).cpu().eval()
-    clean = {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
-    meta = build_metadata(
-        encoder,
-        voxel_size=config.voxel_size,
-        variant=config.variant,
-        data=data,
-        steps=steps,
-        seed=config.seed,
-        metrics=clean,
-    )
-    return save_weights(path, encoder, meta)
-
-
 # ---------------------------------------------------------------------------- the runner
-class _Loader:
-    """Endless batches in the sampler's order, resumable at (epoch, batch)."""
-
-    def __init__(self, dataset: PairDataset, config: TrainConfig, info: DistInfo) -> None:
-        if config.batch_size % info.world_size:
-            raise ValueError(
-                f"batch_size {config.batch_size} is not divisible by the "
-                f"{info.world_size} processes"
-            )
-        self.per_rank = config.batch_size // info.world_size
-        self.sampler = ResumableSampler(dataset, info.world_size, info.rank, config.seed)
-        self.batches_per_epoch = self.sampler.num_samples // self.per_rank
-        if self.batches_per_epoch == 0:
-            raise DatasetError(
-                config.rgbd_dir[0], "too few training pairs for one batch per process"
-            )
-        workers = config.num_workers
-        self.loader = DataLoader(
-            dataset,
-            batch_size=self.per_rank,
-            sampler=self.sampler,
-            drop_last=True,
-            num_workers=workers,
-            collate_fn=collate_pairs,
-            worker_init_fn=worker_init if workers else None,
-            persistent_workers=workers > 0,
-            prefetch_factor=2 if workers else None,
-            generator=torch.Generator().manual_seed(config.seed),  # keeps the global RNG untouched
-            pin_memory=False,
-        )
-        self.epoch = 0
-        self.batch_in_epoch = 0
-
-    def __iter__(self):
-        while True:
-            self.sampler.set_position(self.epoch, self.batch_in_epoch * self.per_rank)
-            for batch in self.loader:
-                self.batch_in_epoch += 1
-                yield batch
-                if self.batch_in_epoch >= self.batches_per_epoch:
-                    break
-            self.epoch += 1
-            self.batch_in_epoch = 0
-
-
 def _loss_dict(terms: LossTerms) -> dict[str, float]:
     return {
         "loss": float(terms.total.detach()),
@@ -420,7 +237,7 @@ def _train(
 
     model = build_model(config, info.rank, _amp_dtype(config, device)).to(device)
     optimizer = build_optimizer(model, config)
-    loader = _Loader(train_set, config, info)
+    loader = ResumableLoader(train_set, config, info)
     generators = {"augment": model.aug_generator}
 
     step = 0
@@ -446,7 +263,7 @@ def _train(
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_run_config(run_dir, config, {"world_size": info.world_size, "data": data_names})
-        _truncate_metrics(run_dir / METRICS_FILE, step)
+        truncate_metrics(run_dir / METRICS_FILE, step)
     ddp_model: torch.nn.Module = model
     if info.distributed:
         from torch.nn.parallel import DistributedDataParallel
@@ -587,25 +404,3 @@ def _train(
             model, config, result.weights_path, data_names, step, export_metrics
         )
     return result
-
-
-def resume_config(run_dir: str | Path, overrides: dict[str, Any]) -> TrainConfig:
-    """The saved configuration of a run with the allowed ``overrides`` applied.
-
-    Raises:
-        InputError: not a run folder; ValueError: an override of a key fixed by the run.
-    """
-    from byoc_cli.training.config import RESUMABLE_KEYS, check_keys
-
-    saved = read_run_config(run_dir)
-    values = saved.to_dict()
-    values["out"] = str(run_dir)
-    changes = check_keys({k: v for k, v in overrides.items() if v is not None}, "command line")
-    for key, value in changes.items():
-        current = values.get(key)
-        if isinstance(current, list):
-            current = tuple(current)
-        if key not in RESUMABLE_KEYS and value != current and key != "out":
-            raise ValueError(f"cannot change '{key}' when resuming (the run has {current!r})")
-        values[key] = value
-    return TrainConfig(**check_keys(values, Path(run_dir) / CONFIG_FILE))

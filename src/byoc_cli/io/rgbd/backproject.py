@@ -1,0 +1,60 @@
+"""Back-projection of a depth image to a camera-frame point cloud.
+
+OpenCV camera axes (x right, y down, z forward); a pixel ``(u, v)`` is column ``u``, row ``v``,
+back-projected through its centre ``(u + 0.5, v + 0.5)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from byoc_cli.errors import ShapeError
+
+
+class BackProjection(NamedTuple):
+    """Output of :func:`backproject`.
+
+    Attributes:
+        points: ``(N, 3)`` float32 camera-frame points in metres.
+        pixel_index: ``(N,)`` int64 row-major pixel of each point, ``v * W + u``.
+    """
+
+    points: np.ndarray
+    pixel_index: np.ndarray
+
+
+def backproject(depth_m: np.ndarray, K: np.ndarray) -> BackProjection:
+    """Back-project a depth image through pixel centres, dropping missing depth.
+
+    Pixel ``(u, v)`` with depth ``z > 0`` gives ``z * K^-1 [u + 0.5, v + 0.5, 1]`` (OpenCV
+    axes). Points come in row-major pixel order; ``pixel_index = v * W + u`` lets each point
+    read its own pixel of an ``(H, W)`` feature map.
+
+    Args:
+        depth_m: ``(H, W)`` depth in metres; ``<= 0`` and non-finite are missing.
+        K: ``(3, 3)`` intrinsics.
+
+    Returns:
+        :class:`BackProjection` ``(points (N, 3) float32, pixel_index (N,) int64)``.
+
+    Raises:
+        ShapeError: ``depth_m`` not 2-D or ``K`` not 3x3.
+        ValueError: ``K`` not finite and invertible.
+    """
+    depth_m = np.asarray(depth_m)
+    K = np.asarray(K, dtype=np.float64)
+    if depth_m.ndim != 2:
+        raise ShapeError(f"depth_m must be (H, W), got {depth_m.shape}")
+    if K.shape != (3, 3):
+        raise ShapeError(f"K must be (3, 3), got {K.shape}")
+    if not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
+        raise ValueError("K must be a finite invertible matrix")
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth_m) & (depth_m > 0)
+    pixel_index = np.flatnonzero(valid).astype(np.int64)
+    v, u = np.divmod(pixel_index, depth_m.shape[1])
+    z = depth_m.reshape(-1)[pixel_index].astype(np.float64)
+    rays = np.stack([u + 0.5, v + 0.5, np.ones_like(z)], axis=1) @ np.linalg.inv(K).T
+    return BackProjection((rays * z[:, None]).astype(np.float32), pixel_index)

@@ -1,0 +1,126 @@
+"""The run folder: its configuration, metrics log and exported weights.
+
+A run folder holds::
+
+    config.json              the effective configuration (with the code version)
+    metrics.jsonl            one JSON object per log line ("train") or validation ("val")
+    checkpoints/step-N.pt    the newest checkpoints (atomic; :mod:`.checkpoint`)
+    training.png             losses and validation accuracy (:mod:`.plot`)
+    weights.safetensors      the final geometric encoder (weights-spec format)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from byoc_cli.errors import InputError
+from byoc_cli.training.config import TrainConfig, config_from_json
+from byoc_cli.training.model import ByocModel
+from byoc_cli.training.plot import read_metrics
+
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "weights.safetensors"
+
+
+def write_run_config(
+    run_dir: Path, config: TrainConfig, extra: dict[str, Any] | None = None
+) -> None:
+    """Write ``config.json`` (the effective configuration and the code version)."""
+    from byoc_cli import __version__
+    from byoc_cli.io.atomic import atomic_write_text
+
+    doc = {"byoc_cli_version": __version__, "config": config.to_dict(), **(extra or {})}
+    atomic_write_text(run_dir / CONFIG_FILE, json.dumps(doc, indent=2, sort_keys=True) + "\n")
+
+
+def read_run_config(run_dir: str | Path) -> TrainConfig:
+    """The configuration saved in a run folder.
+
+    Raises:
+        InputError: not a run folder.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(run_dir, "run folder does not exist")
+    return config_from_json(run_dir / CONFIG_FILE)
+
+
+def truncate_metrics(path: Path, step: int) -> None:
+    """Drop the records of ``metrics.jsonl`` written after ``step`` (a killed run may have
+    logged past its last checkpoint); rewrite atomically."""
+    from byoc_cli.io.atomic import atomic_write_text
+
+    if not path.exists():
+        return
+    keep = [r for r in read_metrics(path) if int(r.get("step", 0)) <= step]
+    atomic_write_text(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in keep))
+
+
+def resume_config(run_dir: str | Path, overrides: dict[str, Any]) -> TrainConfig:
+    """The saved configuration of a run with the allowed ``overrides`` applied.
+
+    Raises:
+        InputError: not a run folder; ValueError: an override of a key fixed by the run.
+    """
+    from byoc_cli.training.config import RESUMABLE_KEYS, check_keys
+
+    saved = read_run_config(run_dir)
+    values = saved.to_dict()
+    values["out"] = str(run_dir)
+    changes = check_keys({k: v for k, v in overrides.items() if v is not None}, "command line")
+    for key, value in changes.items():
+        current = values.get(key)
+        if isinstance(current, list):
+            current = tuple(current)
+        if key not in RESUMABLE_KEYS and value != current and key != "out":
+            raise ValueError(f"cannot change '{key}' when resuming (the run has {current!r})")
+        values[key] = value
+    return TrainConfig(**check_keys(values, Path(run_dir) / CONFIG_FILE))
+
+
+def _geometric_for_export(model: ByocModel, config: TrainConfig) -> torch.nn.Module:
+    if model.geometric is not None:
+        return model.geometric
+    from byoc_cli.models.encoder import build_encoder
+
+    warnings.warn(
+        f"variant {config.variant} trains no geometric encoder: the exported weights "
+        "hold a randomly initialised one",
+        stacklevel=2,
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        return build_encoder(config.arch)
+
+
+def export_weights(
+    model: ByocModel,
+    config: TrainConfig,
+    path: Path,
+    data: list[str],
+    steps: int,
+    metrics: dict[str, float],
+) -> str:
+    """Write the geometric encoder as a weights file; returns its SHA-256."""
+    import copy
+
+    from byoc_cli.pipeline.weights import build_metadata, save_weights
+
+    encoder = copy.deepcopy(_geometric_for_export(model, config)).cpu().eval()
+    clean = {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
+    meta = build_metadata(
+        encoder,
+        voxel_size=config.voxel_size,
+        variant=config.variant,
+        data=data,
+        steps=steps,
+        seed=config.seed,
+        metrics=clean,
+    )
+    return save_weights(path, encoder, meta)
