@@ -73,7 +73,10 @@ def discover_training_sequences(config: TrainConfig) -> list[Any]:
     sequences = []
     for root in config.rgbd_dir:
         sequences += discover_sequences(
-            root, intrinsics=config.intrinsics, depth_scale=config.depth_scale
+            root,
+            intrinsics=config.intrinsics,
+            depth_scale=config.depth_scale,
+            read_poses=False,
         )
     if not sequences:
         raise DatasetError(f"no training sequence in {', '.join(config.rgbd_dir)}")
@@ -228,17 +231,14 @@ def _check_run_folder(run_dir: Path, resume: bool, config_file: str) -> None:
 def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     """Train (or continue) a ``self-posed`` run; returns a ``trainer.TrainResult``."""
     from byoc_cli.models.encoder import build_encoder
-    from byoc_cli.training.plot import plot_metrics
-    from byoc_cli.training.trainer import (
+    from byoc_cli.training.plot import plot_metrics, read_metrics
+    from byoc_cli.training.run_folder import (
         CONFIG_FILE,
-        METRICS_FILE,
-        PLOT_FILE,
         WEIGHTS_FILE,
-        TrainResult,
-        _truncate_metrics,
-        read_metrics,
+        truncate_metrics,
         write_run_config,
     )
+    from byoc_cli.training.trainer import METRICS_FILE, PLOT_FILE, TrainResult
 
     run_dir = Path(config.out)
     _check_run_folder(run_dir, resume, CONFIG_FILE)
@@ -271,7 +271,7 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
             step = int(state["step"])
             restore_rng_state(state["rng"][0], generators)
     metrics_path = run_dir / METRICS_FILE
-    _truncate_metrics(metrics_path, step)
+    truncate_metrics(metrics_path, step)
     result = TrainResult(run_dir, None, None, step)
 
     def write_record(record: dict[str, Any]) -> None:

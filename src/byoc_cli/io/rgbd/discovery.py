@@ -85,6 +85,7 @@ def discover_sequences(
     max_time_difference: float = 0.02,
     pose_time_tolerance: float = 0.02,
     verify: bool = False,
+    read_poses: bool = True,
 ) -> list[RGBDSequence]:
     """Find every RGB-D sequence under ``root`` (recursively) and list its usable frames.
 
@@ -107,6 +108,8 @@ def discover_sequences(
             (:attr:`Layout.depth_scale`: 5000 TUM, 1000 the others).
         require_color: keep only frames with colour; sequences without colour are dropped.
         require_poses: keep only frames with a valid pose.
+        read_poses: False: never open a pose or ground-truth file (training data; every
+            frame's pose is None). Incompatible with ``require_poses``.
         max_time_difference: TUM rgb-depth association limit, seconds.
         pose_time_tolerance: TUM ground-truth association limit, seconds.
         verify: decode every image now (slow) instead of failing at read time.
@@ -136,7 +139,9 @@ def discover_sequences(
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"{label} must be a positive number of seconds, got {value}")
     override = override_K(intrinsics) if intrinsics is not None else None
-    options = ScanOptions(max_time_difference, pose_time_tolerance)
+    if require_poses and not read_poses:
+        raise ValueError("require_poses needs read_poses")
+    options = ScanOptions(max_time_difference, pose_time_tolerance, read_poses)
 
     sequences = []
     dropped = {"color": 0, "poses": 0, "frames": 0}

@@ -24,10 +24,12 @@ class ScanOptions(NamedTuple):
     Attributes:
         max_time_difference: colour-depth association limit (timestamped layouts), seconds.
         pose_time_tolerance: ground-truth association limit (timestamped layouts), seconds.
+        read_poses: False: never open a pose or ground-truth file (every pose is None).
     """
 
     max_time_difference: float = 0.02
     pose_time_tolerance: float = 0.02
+    read_poses: bool = True
 
 
 #: ``frames(folder, entry names, options) -> (frames in time order, skipped)``.

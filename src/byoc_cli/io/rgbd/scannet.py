@@ -33,7 +33,8 @@ def _frames(
     frames = []
     for stem in sorted(depth, key=natural_key):
         number = int(stem) if stem.isdigit() else len(frames)
-        pose = read_pose(folder / "pose" / f"{stem}.txt") if f"{stem}.txt" in poses else None
+        has_pose = options.read_poses and f"{stem}.txt" in poses
+        pose = read_pose(folder / "pose" / f"{stem}.txt") if has_pose else None
         frames.append(RGBDFrame(number, depth[stem], color.get(stem), pose, None))
     return frames, []
 

@@ -39,7 +39,9 @@ def _frames(
                 color = folder / (stem + ext)
                 break
         pose_name = stem + ".pose.txt"
-        pose = read_pose(folder / pose_name) if pose_name in present else None
+        pose = (
+            read_pose(folder / pose_name) if options.read_poses and pose_name in present else None
+        )
         frames.append(RGBDFrame(number, folder / (stem + ".depth.png"), color, pose, None))
     return frames, []
 

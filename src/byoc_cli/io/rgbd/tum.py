@@ -138,7 +138,7 @@ def _tum_frames(
     gt_t = np.zeros(0)
     gt_poses: list[np.ndarray | None] = []
     gt_path = folder / "groundtruth.txt"
-    if gt_path.is_file():
+    if options.read_poses and gt_path.is_file():
         gt_skipped: list[SkippedFrame] = []  # bad ground-truth lines only cost poses
         entries = [e for e in _read_tum_list(gt_path, gt_skipped) if len(e[1]) >= 7]
         gt_t = np.array([e[0] for e in entries], dtype=np.float64)

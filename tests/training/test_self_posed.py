@@ -1,0 +1,147 @@
+"""The self-posed variant end to end: no ground truth read, exact resume, CLI."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from byoc_cli.training.config import TrainConfig
+from byoc_cli.training.trainer import resume_config, train
+
+pytestmark = [pytest.mark.slow, pytest.mark.realdata]
+
+#: file names that hold poses in the layouts the readers accept
+_POSE_NAMES = ("groundtruth.txt",)
+_opened: list[str] | None = None
+
+
+def _audit(event: str, args: tuple) -> None:
+    if _opened is not None and event == "open" and args and isinstance(args[0], str | bytes):
+        _opened.append(str(args[0]))
+
+
+sys.addaudithook(_audit)
+
+
+def _config(data, out, **kw) -> TrainConfig:
+    values = dict(
+        rgbd_dir=(str(data),),
+        out=str(out),
+        variant="self-posed",
+        steps=4,
+        batch_size=2,
+        lr=1e-3,
+        checkpoint_every=2,
+        val_every=0,
+        log_every=1,
+        num_positives=128,
+        pair_gaps=(2, 4),
+        seed=3,
+    )
+    values.update(kw)
+    return TrainConfig(**values)
+
+
+def _assert_identical(a, b) -> None:
+    ta, tb = load_file(str(a)), load_file(str(b))
+    assert ta.keys() == tb.keys()
+    for name in ta:
+        assert torch.equal(ta[name], tb[name]), name
+
+
+@pytest.fixture(scope="module")
+def sequence_copies(shared_data, tmp_path_factory):
+    """tum_fr1_xyz as shipped, and a copy whose ground truth is gone."""
+    src = shared_data / "rgbd" / "tum_fr1_xyz"
+    root = tmp_path_factory.mktemp("seqs")
+    without = root / "tum_fr1_xyz"
+    shutil.copytree(src, without)
+    (without / "groundtruth.txt").unlink()
+    return src, without
+
+
+def test_training_reads_no_ground_truth(sequence_copies, tmp_path):
+    global _opened
+    with_gt, without_gt = sequence_copies
+    _opened = []
+    try:
+        first = train(_config(with_gt, tmp_path / "a"))
+    finally:
+        opened, _opened = _opened, None
+    assert any(p.endswith(".png") for p in opened)  # the hook does see the data being read
+    assert not [p for p in opened if p.endswith(_POSE_NAMES)]
+    # positive control: ordinary discovery (evaluation) does open the ground truth
+    from byoc_cli.io.rgbd import discover_sequences
+
+    _opened = []
+    try:
+        discover_sequences(with_gt)
+    finally:
+        control, _opened = _opened, None
+    assert [p for p in control if p.endswith(_POSE_NAMES)]
+    # and the result does not depend on the ground truth being there at all
+    second = train(_config(without_gt, tmp_path / "b"))
+    _assert_identical(first.weights_path, second.weights_path)
+    pairs = sorted((tmp_path / "a" / "pseudo_pairs").glob("*.json"))
+    assert pairs and (tmp_path / "a" / "pseudo_pairs" / pairs[0].name).stat().st_size > 0
+
+
+def test_resume_is_exact_and_reuses_the_pair_cache(sequence_copies, tmp_path):
+    data, _ = sequence_copies
+    straight = train(_config(data, tmp_path / "straight"))
+    first = train(_config(data, tmp_path / "resumed", steps=2))
+    assert first.steps == 2
+    cache = sorted((tmp_path / "resumed" / "pseudo_pairs").glob("*.json"))
+    stamp = cache[0].stat().st_mtime_ns
+    config = resume_config(tmp_path / "resumed", {"steps": 4})
+    second = train(config, resume=True)
+    assert second.steps == 4
+    assert cache[0].stat().st_mtime_ns == stamp  # not estimated again
+    _assert_identical(straight.weights_path, second.weights_path)
+    assert second.last_loss is not None and second.last_loss > 0
+
+
+def test_cli_self_posed_run_with_validation(shared_data, tmp_path):
+    from click.testing import CliRunner
+
+    from byoc_cli.cli.main import cli
+
+    toml = tmp_path / "recipe.toml"
+    toml.write_text("num_positives = 64\npair_gaps = [2, 4]\n")
+    result = CliRunner().invoke(
+        cli,
+        [
+            "train",
+            "--rgbd-dir",
+            str(shared_data / "rgbd" / "tum_fr1_xyz"),
+            "--variant",
+            "self-posed",
+            "--steps",
+            "2",
+            "--batch-size",
+            "1",
+            "--val-dir",
+            str(shared_data / "rgbd" / "tum_fr1_desk"),
+            "--val-spacing",
+            "4",
+            "--val-every",
+            "2",
+            "--config",
+            str(toml),
+            "--out",
+            str(tmp_path / "run"),
+            "--quiet",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "feature-match recall" in result.output
+    from byoc_cli.pipeline.weights import load_weights
+
+    loaded = load_weights(tmp_path / "run" / "weights.safetensors")
+    assert loaded.metadata["training"]["variant"] == "self-posed"
+    assert loaded.metadata["training"]["recipe"]["num_positives"] == 64
+    assert "val_fmr" in loaded.metadata["training"]["metrics"]
