@@ -5,7 +5,7 @@ The 3DMatch recipe (Zeng et al., CVPR 2017): every ``N`` consecutive depth frame
 expressed in the camera frame of its FIRST frame. Fusion uses Open3D's hashed, sparse voxel
 block TSDF (``open3d.t.geometry.VoxelBlockGrid``, the volume of Open3D's reconstruction system;
 the legacy ``ScalableTSDFVolume`` of open3d 0.20 integrates nothing here, measured); a voxel
-on the zero crossing seen by at least ``min_weight`` frames gives one point.
+on the zero crossing seen by at least ``min_observations`` frames gives one point.
 
 Ground truth between fragments ``i < j`` (poses are camera-to-world ``T_world_cam`` of each
 fragment's first frame):
@@ -69,8 +69,8 @@ DEFAULT_TSDF_VOXEL = 0.006
 DEFAULT_SDF_TRUNC = 0.04
 #: Depth beyond this is ignored, metres (Open3D's reconstruction system: 3.0).
 DEFAULT_DEPTH_TRUNC = 3.0
-#: A voxel must be seen by this many frames to give a point (Open3D's extraction default).
-DEFAULT_MIN_WEIGHT = 3.0
+#: A voxel must be seen by at least this many frames to give a point.
+DEFAULT_MIN_OBSERVATIONS = 3
 #: Pairs with an overlap above this go to gt.log (3DMatch: 30 %).
 DEFAULT_MIN_OVERLAP = 0.3
 #: Overlap: voxel of the clouds compared, and the neighbour radius (1.5 voxels), metres.
@@ -232,14 +232,14 @@ def fuse_fragment(
     voxel_size: float = DEFAULT_TSDF_VOXEL,
     sdf_trunc: float = DEFAULT_SDF_TRUNC,
     depth_trunc: float = DEFAULT_DEPTH_TRUNC,
-    min_weight: float = DEFAULT_MIN_WEIGHT,
+    min_observations: int = DEFAULT_MIN_OBSERVATIONS,
 ) -> np.ndarray:
     """Fuse depth frames into one point cloud in the FIRST frame's camera frame (TSDF).
 
     Objective: TSDF fusion (Open3D voxel block grid, ``voxel_size`` voxels, truncation
     ``sdf_trunc``) of the depth of ``frame_indices``, each placed by its pose relative to the
     first, ``inv(poses[0]) @ poses[k]``; the points are the zero crossings seen by at least
-    ``min_weight`` frames. Poses are passed explicitly, so estimated poses work as well as
+    ``min_observations`` frames. Poses are passed explicitly, so estimated poses work as well as
     the sequence's ground truth.
 
     Args:
@@ -250,7 +250,7 @@ def fuse_fragment(
         voxel_size: TSDF voxel, metres.
         sdf_trunc: truncation distance, metres (> ``voxel_size``).
         depth_trunc: depth beyond this is ignored, metres.
-        min_weight: frames that must see a voxel for it to give a point.
+        min_observations: frames (>= 1) that must see a voxel for it to give a point.
 
     Returns:
         ``(N, 3)`` float32 points in metres, in the first frame's camera frame (N may be 0).
@@ -258,7 +258,8 @@ def fuse_fragment(
     Raises:
         ShapeError: ``poses_world_cam`` not ``(F, 4, 4)`` rigid, no frame index, or an index
             out of range.
-        ValueError: a non-positive size, or ``sdf_trunc <= voxel_size``.
+        ValueError: a non-positive size, ``sdf_trunc <= voxel_size``, or
+            ``min_observations < 1``.
         FrameError: a depth image cannot be read.
         DependencyError: open3d cannot be imported.
     """
@@ -273,6 +274,8 @@ def fuse_fragment(
     depth_trunc = _check_positive("depth_trunc", depth_trunc)
     if sdf_trunc <= voxel_size:
         raise ValueError(f"sdf_trunc ({sdf_trunc}) must exceed voxel_size ({voxel_size})")
+    if int(min_observations) < 1:
+        raise ValueError(f"min_observations must be >= 1, got {min_observations}")
 
     o3d = require_open3d()
     o3c = o3d.core
@@ -286,15 +289,17 @@ def fuse_fragment(
         block_count=_INITIAL_BLOCKS,
         device=cpu,
     )
-    # pixel centres: Open3D projects through integer pixel coordinates, so shift c by -0.5
-    K = np.asarray(sequence.K, dtype=np.float64).copy()
-    K[0, 2] -= 0.5
-    K[1, 2] -= 0.5
-    intrinsic = o3c.Tensor(K, o3c.float64)
+    # the voxel block grid reads the pixel that contains a voxel's projection, which is the
+    # pixel-centre convention of byoc_cli.io.rgbd.backproject: K is used as it is (measured
+    # on exact synthetic renders: a -0.5 shift of c costs 1 cm at 50 px focal length)
+    intrinsic = o3c.Tensor(np.asarray(sequence.K, dtype=np.float64), o3c.float64)
     depth_scale = float(sequence.depth_scale)
     multiplier = sdf_trunc / voxel_size
+    integrated = 0
     for k, pose in zip(frames, poses, strict=True):
         raw = _raw_depth(sequence.read_depth(k), depth_scale)
+        if not np.any((raw > 0) & (raw <= depth_trunc * depth_scale)):
+            continue  # nothing to integrate (open3d would raise "no block is touched")
         depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(raw)))
         # extrinsic = T_cam_ref, the inverse of the frame's pose in the first frame's frame
         extrinsic = o3c.Tensor(relative_pose(pose, poses[0]), o3c.float64)
@@ -305,8 +310,12 @@ def fuse_fragment(
             blocks, depth, intrinsic, extrinsic, depth_scale, depth_trunc,
             trunc_voxel_multiplier=multiplier,
         )  # fmt: skip
+        integrated += 1
+    if integrated == 0:
+        return np.zeros((0, 3), dtype=np.float32)
     try:
-        cloud = grid.extract_point_cloud(weight_threshold=float(min_weight))
+        # the weight counts observations and the threshold is strict: n - 0.5 keeps n or more
+        cloud = grid.extract_point_cloud(weight_threshold=int(min_observations) - 0.5)
     except RuntimeError as exc:  # open3d 0.20 raises instead of returning an empty cloud
         if "has shape {0}" not in str(exc):
             raise
@@ -547,7 +556,7 @@ def make_fragment_benchmark(
     voxel_size: float = DEFAULT_TSDF_VOXEL,
     sdf_trunc: float = DEFAULT_SDF_TRUNC,
     depth_trunc: float = DEFAULT_DEPTH_TRUNC,
-    min_weight: float = DEFAULT_MIN_WEIGHT,
+    min_observations: int = DEFAULT_MIN_OBSERVATIONS,
     min_overlap: float = DEFAULT_MIN_OVERLAP,
     on_fragment: Callable[[FragmentInfo, int], None] | None = None,
 ) -> FragmentBenchmark:
@@ -565,7 +574,7 @@ def make_fragment_benchmark(
         out_dir: the benchmark root; must not exist or be an empty folder.
         scene: the scene name.
         frames_per_fragment, stride: see :func:`fragment_windows`.
-        voxel_size, sdf_trunc, depth_trunc, min_weight: see :func:`fuse_fragment`.
+        voxel_size, sdf_trunc, depth_trunc, min_observations: see :func:`fuse_fragment`.
         min_overlap: pairs with a larger :func:`fragment_overlap` are kept.
         on_fragment: called with each fused fragment and the number of fragments.
 
@@ -599,7 +608,7 @@ def make_fragment_benchmark(
         "frames_per_fragment": int(frames_per_fragment),
         "stride": int(stride if stride is not None else frames_per_fragment),
         "tsdf_voxel": voxel_size, "sdf_trunc": sdf_trunc, "depth_trunc": depth_trunc,
-        "min_weight": min_weight, "min_overlap": min_overlap,
+        "min_observations": min_observations, "min_overlap": min_overlap,
         "overlap": {"voxel": OVERLAP_VOXEL, "radius": OVERLAP_RADIUS, "direction": "min"},
         "info": {"voxel": INFO_VOXEL, "radius": INFO_RADIUS, "max": INFO_MAX_CORRESPONDENCES},
     }  # fmt: skip
@@ -613,7 +622,7 @@ def make_fragment_benchmark(
             poses = np.stack([sequence.frames[k].pose for k in window])
             points = fuse_fragment(
                 sequence, window, poses, voxel_size=voxel_size, sdf_trunc=sdf_trunc,
-                depth_trunc=depth_trunc, min_weight=min_weight,
+                depth_trunc=depth_trunc, min_observations=min_observations,
             )  # fmt: skip
             if len(points) == 0:
                 raise DatasetError(
