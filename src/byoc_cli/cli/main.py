@@ -16,6 +16,7 @@ _COMMANDS = {
     "train": ("byoc_cli.cli.train", "train"),
     "eval-fmr": ("byoc_cli.cli.evaluate", "eval_fmr"),
     "eval-pairs": ("byoc_cli.cli.evaluate", "eval_pairs"),
+    "make-fragments": ("byoc_cli.cli.fragments", "make_fragments"),
 }
 
 

@@ -32,6 +32,7 @@ from byoc_cli.io.threedmatch import (
     read_gt_log,
     read_gt_overlap,
 )
+from byoc_cli.io.threedmatch_write import write_gt_info, write_gt_log, write_gt_overlap
 
 __all__ = [
     "SUPPORTED_EXTENSIONS",
@@ -57,6 +58,9 @@ __all__ = [
     "read_intrinsics",
     "read_point_cloud",
     "read_transform",
+    "write_gt_info",
+    "write_gt_log",
+    "write_gt_overlap",
     "write_ply",
     "write_transform",
 ]
