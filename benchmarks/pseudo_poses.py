@@ -100,13 +100,16 @@ def main() -> int:
             for gap, row in table.items():
                 m = np.asarray(motion[gap]).reshape(-1, 2)
                 row["motion_median_deg"] = float(np.median(m[:, 0])) if len(m) else float("nan")
-                row["motion_median_cm"] = float(np.median(m[:, 1]) * 100) if len(m) else float("nan")
+                row["motion_median_cm"] = (
+                    float(np.median(m[:, 1]) * 100) if len(m) else float("nan")
+                )
                 print(
                     f"{sequence.name:22s} {gap:4d} {row['candidates']:6d} {row['kept']:5d} "
                     f"{100 * row['kept_share']:5.1f}% "
                     f"{row['motion_median_deg']:6.1f}/{row['motion_median_cm']:6.1f} "
                     f"{row['median_rotation_deg']:7.2f}d {row['median_translation_cm']:7.2f}cm "
-                    f"{100 * row['rotation_acc_2deg']:5.1f}% {100 * row['translation_acc_5cm']:5.1f}%",
+                    f"{100 * row['rotation_acc_2deg']:5.1f}% "
+                    f"{100 * row['translation_acc_5cm']:5.1f}%",
                     flush=True,
                 )
             report[sequence.name] = {

@@ -1,13 +1,19 @@
-"""Training throughput: steps/s at batch 8 for byoc-geo and byoc with each encoder.
+"""Training throughput: steps/s and pairs/s per variant and encoder, side by side.
 
 Usage::
 
     python benchmarks/train.py [--rgbd-dir ../shared/data/rgbd/tum_fr1_rpy] [--steps 3]
-        [--device auto] [--arch compact --arch minkunet34c] [--variant byoc-geo --variant byoc]
+        [--device auto] [--arch compact --arch minkunet34c]
+        [--variant byoc-geo --variant byoc --variant self-posed] [--self-posed-batch 8]
 
-Batches are read once up front (data loading is measured separately, per sample), so the
-figure is the model's forward + backward + Adam step. On CUDA the peak GPU memory is
-printed too.
+The paper's variants: batches are read once up front (data loading is measured separately,
+per sample), so the figure is the model's forward + backward + Adam step. ``self-posed``:
+the frames of the same pairs (the same sequence, ``view_spacing`` 20) are cached once as
+training does, and the timed step includes everything training does per step from the
+cache (augmentation, voxelisation, correspondences, forward, backward, Adam). Its
+correspondences use the sequence's ground-truth poses here (throughput only: training uses
+self-posed pairs). The ratio column is pairs/s over the first row's (byoc-geo, compact).
+On CUDA the peak GPU memory is printed too.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ def main() -> None:
     parser.add_argument("--arch", action="append", default=None)
     parser.add_argument("--variant", action="append", default=None)
     parser.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None)
+    parser.add_argument("--self-posed-batch", type=int, default=8)
     args = parser.parse_args()
 
     from byoc_cli.io.rgbd import discover_sequences
@@ -60,9 +67,23 @@ def main() -> None:
         f"{load_s * 1000:.0f} ms per pair (one process)",
         flush=True,
     )
-    print(f"{'variant':10s} {'arch':12s} {'steps/s':>8s} {'s/step':>8s} {'peak GPU MiB':>13s}")
+    print(
+        f"{'variant':10s} {'arch':12s} {'batch':>5s} {'steps/s':>8s} {'s/step':>8s} "
+        f"{'pairs/s':>8s} {'ratio':>6s} {'peak GPU MiB':>13s}"
+    )
+    reference = None
     for arch in archs:
         for variant in variants:
+            if variant == "self-posed":
+                per, batch = _self_posed(args, arch, samples, seqs, order, device)
+                rate = batch / per
+                reference = reference or rate
+                print(
+                    f"{variant:10s} {arch:12s} {batch:5d} {1 / per:8.3f} {per:8.2f} "
+                    f"{rate:8.2f} {rate / reference:6.2f} {'-':>13s}",
+                    flush=True,
+                )
+                continue
             config = TrainConfig(
                 variant=variant, arch=arch, batch_size=args.batch_size, amp=args.amp
             )
@@ -89,8 +110,54 @@ def main() -> None:
                 if device.type == "cuda"
                 else f"{'-':>13s}"
             )
-            print(f"{variant:10s} {arch:12s} {1 / per:8.3f} {per:8.2f} {peak}", flush=True)
+            rate = args.batch_size / per
+            reference = reference or rate
+            print(
+                f"{variant:10s} {arch:12s} {args.batch_size:5d} {1 / per:8.3f} {per:8.2f} "
+                f"{rate:8.2f} {rate / reference:6.2f} {peak}",
+                flush=True,
+            )
             del model, opt
+
+
+def _self_posed(args, arch, samples, seqs, order, device):
+    """Median seconds per self-posed step over the same pairs; returns (s/step, batch)."""
+    import numpy as np
+
+    from byoc_cli.models.encoder import build_encoder
+    from byoc_cli.training.config import TrainConfig
+    from byoc_cli.training.pseudo_poses import frame_points
+    from byoc_cli.training.self_posed import CACHE_VOXEL_FACTOR, training_step
+    from byoc_cli.training.self_posed_data import cache_frame
+
+    del samples
+    batch_size = args.self_posed_batch
+    config = TrainConfig(variant="self-posed", arch=arch, batch_size=batch_size)
+    seq = seqs[0]
+    starts = [i for i in order if i + 20 < len(seq.frames)]
+    steps = args.steps + args.warmup
+    starts = (starts * (1 + batch_size * steps // max(len(starts), 1)))[: batch_size * steps]
+    frames = {}
+    for i in sorted({f for s in starts for f in (s, s + 20)}):
+        frames[i] = cache_frame(frame_points(seq, i), CACHE_VOXEL_FACTOR * config.voxel_size)
+    poses = {i: seq.pose(i) for i in frames}
+    encoder = build_encoder(arch).to(device).train()
+    opt = torch.optim.Adam(encoder.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    times = []
+    for k in range(steps):
+        batch = []
+        for s in starts[k * batch_size : (k + 1) * batch_size]:
+            T = torch.from_numpy(np.linalg.inv(poses[s]) @ poses[s + 20])
+            batch.append((frames[s], frames[s + 20], T))
+        t = time.perf_counter()
+        loss, _ = training_step(encoder, batch, config, gen)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if k >= args.warmup:
+            times.append(time.perf_counter() - t)
+    return float(np.median(times)), batch_size
 
 
 if __name__ == "__main__":
