@@ -410,3 +410,32 @@ def export_encoder(
         )
     }
     return save_weights(path, model, meta)
+
+
+def export_checkpoint(checkpoint: str | Path, path: str | Path) -> str:
+    """Write the encoder of a ``self-posed`` checkpoint as a weights file; returns its SHA-256.
+
+    Lets a running campaign be measured (or shipped) at any checkpoint without stopping it.
+    """
+    from byoc_cli.models.encoder import build_encoder
+    from byoc_cli.training.checkpoint import load_checkpoint
+
+    state = load_checkpoint(checkpoint)
+    config = TrainConfig(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()}
+    )
+    encoder = build_encoder(config.arch)
+    encoder.load_state_dict(state["model"])
+    metrics: dict[str, float] = {}
+    metrics_path = Path(checkpoint).parents[1] / "metrics.jsonl"
+    if metrics_path.exists():
+        records = [json.loads(line) for line in metrics_path.read_text().splitlines() if line]
+        vals = [r for r in records if r.get("kind") == "val" and r["step"] <= state["step"]]
+        if vals:
+            metrics = {
+                f"val_{k}": v
+                for k, v in vals[-1].items()
+                if k not in ("kind", "step", "val_time_s")
+            }
+    data = list(config.rgbd_dir)
+    return export_encoder(encoder, config, Path(path), data, int(state["step"]), metrics)

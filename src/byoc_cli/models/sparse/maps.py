@@ -40,6 +40,10 @@ class KernelMap(NamedTuple):
         identity_offset: offset whose pairs are ``in = out = arange(num_in)`` (the centre
             of a submanifold convolution), kept out of ``pairs`` and computed as one dense
             matmul; ``-1`` when there is none.
+        pairs_by_in: the same pairs ordered by input index within each offset (the
+            backward pass scatters into the inputs), or None to use :attr:`pairs`. Maps
+            built by :class:`CoordinateManager` order :attr:`pairs` by output index and
+            fill this field: scatter-adds into ascending rows stay in cache.
     """
 
     num_offsets: int
@@ -47,6 +51,7 @@ class KernelMap(NamedTuple):
     num_out: int
     pairs: tuple[tuple[int, torch.Tensor, torch.Tensor], ...]
     identity_offset: int
+    pairs_by_in: tuple[tuple[int, torch.Tensor, torch.Tensor], ...] | None = None
 
     @property
     def num_pairs(self) -> int:
@@ -58,6 +63,32 @@ class KernelMap(NamedTuple):
     def max_block(self) -> int:
         """Largest number of pairs of one offset in :attr:`pairs` (0 when empty)."""
         return max((int(i.shape[0]) for _, i, _ in self.pairs), default=0)
+
+
+def _ordered(pairs, column: int) -> tuple[tuple[int, torch.Tensor, torch.Tensor], ...]:
+    """``pairs`` with each offset's rows sorted by input (``column`` 1) or output (2)."""
+    out = []
+    for k, in_idx, out_idx in pairs:
+        key = in_idx if column == 1 else out_idx
+        if key.numel() > 1 and not bool((key[1:] >= key[:-1]).all()):
+            order = torch.argsort(key)
+            in_idx, out_idx = in_idx[order], out_idx[order]
+        out.append((k, in_idx, out_idx))
+    return tuple(out)
+
+
+def _both_orders(
+    num_offsets: int, num_in: int, num_out: int, pairs, identity_offset: int
+) -> KernelMap:
+    """A :class:`KernelMap` whose pairs are sorted by output, with the by-input copy."""
+    return KernelMap(
+        num_offsets,
+        num_in,
+        num_out,
+        _ordered(pairs, 2),
+        identity_offset,
+        _ordered(pairs, 1),
+    )
 
 
 def kernel_offsets(kernel_size: int, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -194,9 +225,7 @@ class CoordinateManager:
         if key not in self._maps:
             down = self.downsample_map(stride // 2)
             pairs = tuple((k, coarse, fine) for k, fine, coarse in down.pairs)
-            self._maps[key] = KernelMap(
-                NUM_OCTANTS, down.num_out, down.num_in, pairs, identity_offset=-1
-            )
+            self._maps[key] = _both_orders(NUM_OCTANTS, down.num_out, down.num_in, pairs, -1)
         return self._maps[key]
 
     def _build_submanifold(self, stride: int, kernel_size: int) -> KernelMap:
@@ -222,7 +251,7 @@ class CoordinateManager:
                 by_offset[k] = (there[k], here[k])
                 by_offset[num_offsets - 1 - k] = (here[k], there[k])
         pairs = tuple((k, *by_offset[k]) for k in sorted(by_offset))
-        return KernelMap(num_offsets, n, n, pairs, centre)
+        return _both_orders(num_offsets, n, n, pairs, centre)
 
     def _build_downsample(self, stride: int) -> KernelMap:
         fine = self._site_set(stride).coords
@@ -246,4 +275,4 @@ class CoordinateManager:
                 sel = order[start : start + count]
                 pairs.append((k, sel, coarse_idx[sel]))
             start += count
-        return KernelMap(NUM_OCTANTS, n, int(uniq.shape[0]), tuple(pairs), -1)
+        return _both_orders(NUM_OCTANTS, n, int(uniq.shape[0]), tuple(pairs), -1)

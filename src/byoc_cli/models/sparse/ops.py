@@ -52,7 +52,7 @@ def _conv_backward(
         grad_weight = torch.zeros_like(weight)
         if centre >= 0:
             torch.mm(feats.t(), grad_out, out=grad_weight[centre])
-    for k, in_idx, out_idx in kmap.pairs:
+    for k, in_idx, out_idx in kmap.pairs_by_in if kmap.pairs_by_in is not None else kmap.pairs:
         g_out = grad_out.index_select(0, out_idx)
         if need_weight:
             torch.mm(feats.index_select(0, in_idx).t(), g_out, out=grad_weight[k])

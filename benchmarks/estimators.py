@@ -1,0 +1,139 @@
+"""Which estimator settings register learned features best: a sweep on development pairs.
+
+Usage::
+
+    python benchmarks/estimators.py --weights W.safetensors \
+        [--fragments ROOT ...] [--rgbd-dir SEQ --spacing 10 ...] [--limit 40] [--seeds 1]
+
+Features are computed once per cloud (the weights' voxel), then every setting below runs on
+the same features: randomized Procrustes (the paper's) and RANSAC, with 200 / 500 / 1000
+ratio-test correspondences per direction, 5000 / 10000 points, with and without mutual
+filtering, each without and with point-to-plane ICP at the end. Printed per pair set:
+success (rotation < 15 deg and translation < 30 cm), rotation accuracy at 5 deg, translation
+accuracy at 10 cm, median errors and the median seconds of matching + fitting (+ ICP).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def _pair_sets(args):
+    from byoc_cli.evaluation.benchmark import load_benchmark_pairs
+    from byoc_cli.evaluation.pairs import rgbd_pairs
+    from byoc_cli.io.pointcloud import read_point_cloud
+    from byoc_cli.io.threedmatch import discover_benchmark
+
+    sets = {}
+    for root in args.fragments or []:
+        pairs = load_benchmark_pairs(discover_benchmark(root), limit=args.limit).pairs
+        sets[f"fragments:{Path(root).name}"] = [
+            (
+                f"{p.scene}:{p.i}-{p.j}",
+                str(p.source),
+                str(p.target),
+                p.T_gt,
+                (lambda path=p.source: read_point_cloud(path).points),
+                (lambda path=p.target: read_point_cloud(path).points),
+            )
+            for p in pairs
+        ]
+    for root in args.rgbd_dir or []:
+        specs, _ = rgbd_pairs([root], spacing=args.spacing, limit=args.limit)
+        sets[f"rgbd:{Path(root).name}@{args.spacing}"] = [
+            (s.name, s.source.key, s.target.key, s.T_gt, s.source.load, s.target.load)
+            for s in specs
+        ]
+    return sets
+
+
+def _errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
+    delta = np.linalg.inv(T_gt) @ T
+    cos = np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)
+    return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(delta[:3, 3]))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--weights", type=Path, required=True)
+    parser.add_argument("--fragments", type=Path, action="append")
+    parser.add_argument("--rgbd-dir", type=Path, action="append")
+    parser.add_argument("--spacing", type=int, default=10)
+    parser.add_argument("--limit", type=int, default=None)
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--quick", action="store_true", help="fewer settings")
+    args = parser.parse_args()
+
+    from byoc_cli.pipeline.features import ByocExtractor
+    from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
+    from byoc_cli.pipeline.weights import load_weights
+
+    loaded = load_weights(args.weights)
+    voxel = float(loaded.metadata["voxel_size"])
+    extractor = ByocExtractor(loaded.encoder, voxel)
+    grid = {
+        "estimator": ["procrustes", "ransac"],
+        "num_correspondences": [200, 1000] if args.quick else [200, 500, 1000],
+        "max_points": [5000] if args.quick else [5000, 10000],
+        "mutual": [False],
+        "icp": [False, True],
+    }
+    settings = [dict(zip(grid, v, strict=True)) for v in itertools.product(*grid.values())]
+    for name, pairs in _pair_sets(args).items():
+        feats: dict[str, object] = {}
+        results = {i: [] for i in range(len(settings))}
+        for label, key_s, key_t, T_gt, load_s, load_t in pairs:
+            for key, load in ((key_s, load_s), (key_t, load_t)):
+                if key not in feats:
+                    points = torch.as_tensor(np.asarray(load()), dtype=torch.float32)
+                    feats[key] = (points, extractor(points, label=key))
+            (_, fs), (_, ft) = feats[key_s], feats[key_t]
+            for n, s in enumerate(settings):
+                for seed in range(args.seeds):
+                    config = RegisterConfig(
+                        estimator=s["estimator"],
+                        num_correspondences=s["num_correspondences"],
+                        max_points=s["max_points"],
+                        seed=seed,
+                    )
+                    t0 = time.perf_counter()
+                    try:
+                        T = estimate_transform(fs, ft, config, voxel).T_tgt_src
+                        if s["icp"]:
+                            T = refine_icp(fs.points, ft.points, T, 2.0 * voxel)
+                        err = _errors(T.double().numpy(), T_gt)
+                    except Exception:  # a failed fit counts as a failure
+                        err = (180.0, 10.0)
+                    results[n].append((*err, time.perf_counter() - t0))
+            del label
+        print(f"\n{name}: {len(pairs)} pairs x {args.seeds} seed(s)")
+        print(
+            f"{'setting':58s} {'succ%':>6s} {'r@5%':>6s} {'t@10%':>6s} "
+            f"{'med r':>6s} {'med t':>6s} {'s':>6s}"
+        )
+        for n, s in enumerate(settings):
+            r = np.asarray(results[n])
+            label = (
+                f"{s['estimator']:10s} corr {s['num_correspondences']:5d} "
+                f"pts {s['max_points']:5d} icp {'y' if s['icp'] else 'n'}"
+            )
+            succ = np.mean((r[:, 0] < 15) & (r[:, 1] < 0.30)) * 100
+            print(
+                f"{label:58s} {succ:6.1f} {np.mean(r[:, 0] < 5) * 100:6.1f} "
+                f"{np.mean(r[:, 1] < 0.10) * 100:6.1f} {np.median(r[:, 0]):6.2f} "
+                f"{np.median(r[:, 1]) * 100:6.1f} {statistics.median(r[:, 2]):6.3f}",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
