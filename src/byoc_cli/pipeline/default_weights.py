@@ -1,0 +1,53 @@
+"""The weights that ship with byoc-cli (installed with the package, checksummed).
+
+``byoc_cli/weights/default.safetensors`` is the encoder ``byoc register`` uses when no
+``--weights`` is given; ``default.sha256`` beside it holds the file's SHA-256, checked on
+every load so that a damaged install is refused instead of registering badly.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from byoc_cli.errors import WeightsError
+
+#: folder of the shipped weights inside the installed package
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
+DEFAULT_CHECKSUM = WEIGHTS_DIR / "default.sha256"
+
+
+def default_weights_path() -> Path | None:
+    """The shipped weights file, or None when this install ships none."""
+    return DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.is_file() else None
+
+
+def verify_default_weights(path: Path = DEFAULT_WEIGHTS, checksum: Path = DEFAULT_CHECKSUM) -> str:
+    """Check the shipped file against its recorded SHA-256; returns the digest.
+
+    Raises:
+        WeightsError: the file or its checksum is missing, or they disagree.
+    """
+    if not path.is_file():
+        raise WeightsError(path, "no weights ship with this install (pass --weights FILE)")
+    try:
+        expected = checksum.read_text(encoding="ascii").split()[0].strip().lower()
+    except (OSError, IndexError, UnicodeDecodeError) as exc:
+        raise WeightsError(checksum, "the shipped weights' checksum file is missing or empty") from exc
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    if digest != expected:
+        raise WeightsError(path, "the shipped weights do not match their checksum (reinstall byoc-cli)")
+    return digest
+
+
+def load_default_weights():
+    """Verify and load the shipped weights (a ``LoadedWeights``).
+
+    Raises:
+        WeightsError: nothing ships, the checksum disagrees, or the file is invalid.
+    """
+    from byoc_cli.pipeline.weights import load_weights
+
+    verify_default_weights()
+    return load_weights(DEFAULT_WEIGHTS)
