@@ -139,7 +139,7 @@ class OutputSet:
         target = Path(os.path.realpath(shown))  # a symlink is written through
         try:
             st = os.stat(target)
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             st = None
         except OSError as exc:
             raise InputError(shown, write_problem(exc, target)) from exc
@@ -202,11 +202,14 @@ class OutputSet:
         try:
             for target, temp in list(self._staged.items()):
                 backup = _keep_backup(target)
-                done.append((target, backup))
                 try:
                     os.replace(temp, target)
                 except OSError as exc:
+                    if backup is not None:  # target untouched: drop its second name
+                        with contextlib.suppress(OSError):
+                            os.unlink(backup)
                     raise InputError(self._claimed[target], write_problem(exc, target)) from exc
+                done.append((target, backup))
                 del self._staged[target]
         except BaseException:
             _roll_back(done)
