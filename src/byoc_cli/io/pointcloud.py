@@ -149,15 +149,23 @@ def _read_npy(path: Path) -> np.ndarray:
                 shape, _, dtype = np.lib.format.read_array_header_2_0(f)
         except (ValueError, EOFError, OSError, SyntaxError) as exc:
             raise InputError(path, "not an NPY file (bad header)") from exc
+        available = os.fstat(f.fileno()).st_size - f.tell()
+    if any(not isinstance(n, int) or n < 0 for n in shape):
+        raise InputError(path, f"not an NPY file (bad shape {tuple(shape)} in the header)")
     if len(shape) != 2 or shape[1] != 3:
         raise InputError(path, f"NPY array has shape {tuple(shape)}, expected (N, 3)")
     if dtype.kind not in "fiu":
         raise InputError(path, f"NPY array has dtype {dtype}, expected float or int")
     if shape[0] == 0:
         raise InputError(path, "empty point cloud (0 points)")
+    if shape[0] * 3 * dtype.itemsize > available:
+        raise InputError(
+            path,
+            f"truncated or corrupt NPY file (header says {shape[0]} points, the data holds fewer)",
+        )
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, EOFError, OSError) as exc:
+    except (ValueError, EOFError, OSError, OverflowError) as exc:
         raise InputError(path, f"truncated or corrupt NPY file ({exc})") from exc
     return np.array(array, dtype=np.float64, order="C")
 

@@ -142,7 +142,8 @@ def estimate_transform(
         warnings.simplefilter("always")
         fit = _fit(p, q, w, config, threshold, generator)
     if caught:  # a degenerate fit (every minimal set rejected): no transform to report
-        raise RegistrationError(f"cannot fit a transform: {caught[0].message}")
+        reason = str(caught[0].message).split(";")[0]  # not the estimator's fallback
+        raise RegistrationError(f"no transform could be fitted ({reason})")
     T = fit.T_tgt_src.to(torch.float64)
     start = timer("fit", start)
 
