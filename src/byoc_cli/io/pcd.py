@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import struct
 from pathlib import Path
 from typing import BinaryIO
 
@@ -17,6 +18,9 @@ import numpy as np
 from byoc_cli.errors import InputError, require_open3d
 
 __all__ = ["read_pcd_points", "read_xyz_points"]
+
+#: Largest COUNT (values per field) accepted in a PCD header (FPFH histograms have 33).
+_MAX_PCD_COUNT = 1024
 
 
 def _o3d_read(path: Path, fmt: str) -> np.ndarray:
@@ -58,24 +62,43 @@ def _pcd_header(f: BinaryIO, path: Path) -> tuple[dict[str, list[str]], int]:
     raise InputError(path, "not a PCD file (bad header)")
 
 
-def read_pcd_points(f: BinaryIO, path: Path) -> np.ndarray:
-    """x, y, z of the PCD file open as ``f``: the header and the size are checked here,
-    then open3d reads it (it returns a padded or empty cloud on a bad file)."""
-    header, offset = _pcd_header(f, path)
-    size = os.fstat(f.fileno()).st_size
+def _pcd_layout(header: dict[str, list[str]], path: Path) -> tuple[int, int, str]:
+    """Check the header's numbers against the PCD spec before open3d trusts them.
+
+    Returns:
+        ``(points, bytes per point, data encoding)``.
+    """
     fields = header.get("FIELDS", [])
     if not all(k in fields for k in "xyz"):
         raise InputError(path, f"PCD lacks x, y, z fields (has {', '.join(fields) or 'none'})")
     try:
-        if "POINTS" in header:
-            count = int(header["POINTS"][0])
-        else:
-            count = int(header["WIDTH"][0]) * int(header.get("HEIGHT", ["1"])[0])
-        sizes = [int(v) for v in header.get("SIZE", [])]
+        width = int(header["WIDTH"][0])
+        height = int(header.get("HEIGHT", ["1"])[0])
+        count = int(header["POINTS"][0]) if "POINTS" in header else width * height
+        sizes = [int(v) for v in header["SIZE"]]
         counts = [int(v) for v in header.get("COUNT", ["1"] * len(fields))]
+        types = header["TYPE"]
         data = header["DATA"][0]
     except (KeyError, IndexError, ValueError) as exc:
         raise InputError(path, "not a PCD file (bad header)") from exc
+    if not len(sizes) == len(counts) == len(types) == len(fields):
+        raise InputError(path, "bad PCD header (FIELDS, SIZE, TYPE and COUNT differ in length)")
+    if any(s not in (1, 2, 4, 8) for s in sizes) or any(t not in ("F", "I", "U") for t in types):
+        raise InputError(path, "bad PCD header (SIZE must be 1, 2, 4 or 8 and TYPE F, I or U)")
+    if any(not 1 <= c <= _MAX_PCD_COUNT for c in counts) or min(width, height, count) < 0:
+        raise InputError(path, "bad PCD header (a COUNT, WIDTH, HEIGHT or POINTS out of range)")
+    if count != width * height:
+        raise InputError(path, f"bad PCD header (POINTS {count} is not WIDTH x HEIGHT)")
+    return count, sum(s * c for s, c in zip(sizes, counts, strict=True)), data
+
+
+def read_pcd_points(f: BinaryIO, path: Path) -> np.ndarray:
+    """x, y, z of the PCD file open as ``f``: the header and the size are checked here,
+    then open3d reads it (it returns a padded or empty cloud on a bad file, and crashes on
+    some headers that lie)."""
+    header, offset = _pcd_header(f, path)
+    available = os.fstat(f.fileno()).st_size - offset
+    count, row_bytes, data = _pcd_layout(header, path)
     if count == 0:
         raise InputError(path, "empty point cloud (0 points)")
     if data == "ascii":
@@ -84,13 +107,14 @@ def read_pcd_points(f: BinaryIO, path: Path) -> np.ndarray:
             raise InputError(
                 path, f"truncated PCD file (header says {count} points, found {lines} lines)"
             )
-    elif data == "binary" and len(sizes) == len(counts) == len(fields):
-        need = count * sum(s * c for s, c in zip(sizes, counts, strict=True))
-        if size - offset < need:
+    elif data == "binary":
+        if available < count * row_bytes:
             raise InputError(
                 path, f"truncated PCD file (header says {count} points, data too short)"
             )
-    elif data not in ("binary", "binary_compressed"):
+    elif data == "binary_compressed":
+        _check_compressed(f, path, count * row_bytes, available)
+    else:
         raise InputError(path, f"unsupported PCD data encoding {data!r}")
     points = _o3d_read(path, "pcd")
     if points.shape[0] != count:
@@ -100,6 +124,21 @@ def read_pcd_points(f: BinaryIO, path: Path) -> np.ndarray:
             f"{points.shape[0]}; truncated or corrupt file?)",
         )
     return points
+
+
+def _check_compressed(f: BinaryIO, path: Path, expected: int, available: int) -> None:
+    """binary_compressed: two uint32 sizes, then the LZF data; both sizes must agree."""
+    sizes = f.read(8)
+    if len(sizes) < 8:
+        raise InputError(path, "could not read PCD data (no compressed data)")
+    compressed, uncompressed = struct.unpack("<II", sizes)
+    if uncompressed != expected or compressed > available - 8 or compressed == 0:
+        raise InputError(
+            path,
+            f"could not read PCD data (compressed sizes {compressed} / {uncompressed} bytes, "
+            f"expected {expected} uncompressed within {available - 8}; truncated or corrupt "
+            "file?)",
+        )
 
 
 def _count_lines(f: BinaryIO) -> int:
