@@ -147,7 +147,7 @@ def _read_npy(path: Path) -> np.ndarray:
                 shape, _, dtype = np.lib.format.read_array_header_1_0(f)
             else:
                 shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-        except (ValueError, EOFError, OSError, SyntaxError) as exc:
+        except Exception as exc:  # numpy's header parser raises many kinds (TokenError too)
             raise InputError(path, "not an NPY file (bad header)") from exc
         available = os.fstat(f.fileno()).st_size - f.tell()
     if any(not isinstance(n, int) or n < 0 for n in shape):
