@@ -145,7 +145,7 @@ def odd_npy(draw) -> bytes:
     dtype = np.dtype(draw(ODD_DTYPES))
     array = np.zeros(shape, dtype=dtype)
     if dtype.kind == "f" and array.size:
-        array.flat[draw(st.integers(0, array.size - 1))] = draw(st.floats(allow_nan=True))
+        array.flat[draw(st.integers(0, array.size - 1))] = draw(st.floats(allow_nan=True, width=32))
     buffer = io.BytesIO()
     np.save(buffer, array, allow_pickle=True)
     return buffer.getvalue()

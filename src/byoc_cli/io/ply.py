@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import itertools
 import os
+import warnings
 from pathlib import Path
 from typing import BinaryIO
 
@@ -101,9 +102,11 @@ def _read_ply_ascii(
     cols = tuple(names.index(k) for k in "xyz")
     rows = min(vertex.count, available // (_ASCII_PROPERTY_BYTES * len(names)) + 1)
     try:
-        out = np.loadtxt(
-            text, dtype=np.float64, comments=None, usecols=cols, max_rows=rows, ndmin=2
-        )
+        with warnings.catch_warnings():  # "input contained no data": reported below
+            warnings.simplefilter("ignore", UserWarning)
+            out = np.loadtxt(
+                text, dtype=np.float64, comments=None, usecols=cols, max_rows=rows, ndmin=2
+            )
     except ValueError as exc:
         raise InputError(path, f"malformed ASCII PLY vertex data ({exc})") from exc
     if out.shape[0] < vertex.count:
