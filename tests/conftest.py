@@ -15,6 +15,21 @@ SHARED_DATA = Path(
 )
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--slow",
+        action="store_true",
+        default=False,
+        help="Run the fuzz tests with many more cases (BYOC_FUZZ_SCALE, default 10 times).",
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # read by tests/_fuzzing.py when the fuzz modules are collected (after this hook)
+    if config.getoption("--slow"):
+        os.environ.setdefault("BYOC_FUZZ_SCALE", "10")
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """Path of ``../shared/data``; skips when absent, fails in CI (CI must not skip)."""

@@ -380,3 +380,13 @@ def test_per_feature_defaults_are_reported(runner, random_weights, tmp_path, fea
     max_points, estimator, most_correspondences = expected
     assert (r["max_points"], r["estimator"]) == (max_points, estimator)
     assert 3 <= r["num_correspondences"] <= most_correspondences
+
+
+def test_json_to_stdout_alone_writes_only_the_json(runner, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--features", "fpfh", "--json", "-"])
+    assert res.exit_code == 0, res.stderr
+    report = json.loads(res.stdout)  # the whole of stdout is one JSON document
+    assert len(report["T_tgt_src"]) == 4
+    both = runner.invoke(cli, ["register", str(src), str(tgt), "-o", "-", "--json", "-"])
+    assert both.exit_code == 2 and "cannot both be stdout" in both.stderr

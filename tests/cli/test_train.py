@@ -213,3 +213,22 @@ def test_sigterm_checkpoints_the_last_step_and_resume_finishes(shared_data, tmp_
     )
     assert done.returncode == 0, done.stderr.decode()
     assert (run / "weights.safetensors").exists()
+
+
+def test_help_is_plain_text_and_documents_seed_and_device():
+    result = _run(["--help"])
+    assert "``" not in result.output
+    lines = result.output.splitlines()
+    for flag in ("--seed", "--device"):
+        line = next(k for k, text in enumerate(lines) if text.strip().startswith(flag))
+        assert len(" ".join(lines[line : line + 3]).split()) > 4, flag  # more than a default
+
+
+def test_out_folder_with_other_files_is_refused(tmp_path):
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    result = _run(["--rgbd-dir", str(tmp_path), "--out", str(out)])
+    assert result.exit_code == 1
+    assert str(out) in result.stderr and "notes.txt" in result.stderr
+    assert (out / "notes.txt").read_text() == "mine"

@@ -295,3 +295,38 @@ def test_depth_works_without_open3d(tmp_path, monkeypatch):
     K.write_text("10 0 2.5\n0 10 2\n0 0 1\n")
     cloud = read_depth_cloud(path, K)
     assert cloud.points.shape == (20, 3) and np.allclose(cloud.points[:, 2], 1.0)
+
+
+@pytest.mark.parametrize(
+    ("text", "phrase"),
+    [
+        ("1e-7 0 16\n0 1e-7 12\n0 0 1\n", "not plausible"),
+        ("5e9 0 16\n0 5e9 12\n0 0 1\n", "not plausible"),
+        ("500 0 1e12\n0 500 12\n0 0 1\n", "principal point or skew"),
+    ],
+)
+def test_implausible_intrinsics_are_refused(tmp_path, text, phrase):
+    path = tmp_path / "K.txt"
+    path.write_text(text)
+    with pytest.raises(InputError, match=phrase) as info:
+        read_intrinsics(path)
+    assert info.value.path == str(path)
+
+
+@pytest.mark.parametrize("width", ["1e400", "1e9", "NaN", "-Infinity"])
+def test_absurd_image_sizes_are_refused(tmp_path, width):
+    path = tmp_path / "K.json"
+    matrix = K_FR1.flatten("F").tolist()
+    path.write_text(f'{{"width": {width}, "intrinsic_matrix": {matrix}}}')
+    with pytest.raises(InputError, match="'width'"):
+        read_intrinsics(path)
+
+
+def test_depth_image_larger_than_any_depth_camera_is_refused(tmp_path, monkeypatch):
+    import byoc_cli.io.depth as depth_module
+
+    path = tmp_path / "d.png"
+    Image.fromarray(np.ones((40, 50), dtype=np.uint16)).save(path)
+    monkeypatch.setattr(depth_module, "MAX_DEPTH_PIXELS", 1999)
+    with pytest.raises(InputError, match="larger than a depth image can be"):
+        read_depth_image(path, 1000.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
@@ -622,3 +623,12 @@ def test_ten_million_points_memory_and_time(tmp_path):
     assert result["n"] == n - 1
     assert growth_mb < 350, f"peak RSS grew by {growth_mb:.0f} MB"
     assert result["s"] < 10, f"took {result['s']:.1f} s"
+
+
+def test_npy_header_that_breaks_numpys_parser(tmp_path):
+    """Found by the slow fuzz run: a NUL for the brace made numpy raise TokenError."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.zeros((4, 3)))
+    path = tmp_path / "brace.npy"
+    path.write_bytes(buffer.getvalue().replace(b"{", b"\x00", 1))
+    assert _error(path) == "not an NPY file (bad header)"

@@ -1,42 +1,110 @@
-"""Options shared by several commands."""
+"""Options shared by several commands, and the parameter types every command uses.
+
+Numbers: :class:`FiniteFloat` refuses ``nan`` and ``inf`` (click's ``FloatRange`` lets them
+through), :data:`SEED` is bounded to what a generator takes (0 to 2**64 - 1); both are usage
+errors (exit 2) naming the option. :func:`float_option`, :func:`int_option` and
+:func:`path_option` declare an option in one line.
+"""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
-voxel_size_option = click.option(
+#: Largest seed a ``torch.Generator`` takes.
+MAX_SEED = 2**64 - 1
+
+
+class FiniteFloat(click.FloatRange):
+    """A float in a range that must also be finite (no ``nan``, ``inf``)."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return super().convert(number, param, ctx)
+
+
+def finite_float(
+    min: float | None = None,
+    max: float | None = None,
+    *,
+    min_open: bool = False,
+    max_open: bool = False,
+) -> FiniteFloat:
+    """A :class:`FiniteFloat` parameter type."""
+    return FiniteFloat(min=min, max=max, min_open=min_open, max_open=max_open)
+
+
+POSITIVE = finite_float(0, min_open=True)
+SEED = click.IntRange(0, MAX_SEED)
+
+
+def float_option(*decls: str, type: click.ParamType = POSITIVE, **kwargs: Any) -> Callable:
+    """A float option (finite, > 0 unless ``type`` says otherwise)."""
+    kwargs.setdefault("show_default", kwargs.get("default") is not None)
+    return click.option(*decls, type=type, **kwargs)
+
+
+def int_option(*decls: str, min: int = 0, **kwargs: Any) -> Callable:
+    """An integer option of at least ``min``."""
+    kwargs.setdefault("show_default", kwargs.get("default") is not None)
+    return click.option(*decls, type=click.IntRange(min=min), **kwargs)
+
+
+def path_option(*decls: str, file: bool = True, **kwargs: Any) -> Callable:
+    """A path option (``file=True``: a file, not a folder)."""
+    kind = click.Path(dir_okay=not file, path_type=Path, allow_dash=kwargs.pop("dash", False))
+    return click.option(*decls, type=kind, **kwargs)
+
+
+def choice_option(*decls: str, choices: list[str], **kwargs: Any) -> Callable:
+    """An option taking one of ``choices``."""
+    kwargs.setdefault("show_default", kwargs.get("default") is not None)
+    return click.option(*decls, type=click.Choice(choices), **kwargs)
+
+
+def apply(*options: Callable) -> Callable:
+    """One decorator out of several option decorators (in reading order)."""
+
+    def decorate(func: Callable) -> Callable:
+        for option in reversed(options):
+            func = option(func)
+        return func
+
+    return decorate
+
+
+voxel_size_option = float_option(
     "--voxel-size",
-    type=click.FloatRange(min=0, min_open=True),
     default=None,
     help="Voxel size in metres [default: the weights' voxel size (0.025) for byoc, 0.05 for fpfh].",
 )
 seed_option = click.option(
     "--seed",
-    type=click.IntRange(min=0),
+    type=SEED,
     default=0,
     show_default=True,
     help="Seeds every random choice; the same seed gives the same result.",
 )
-device_option = click.option(
+DEVICES = ["auto", "cpu", "cuda"]
+device_option = choice_option(
     "--device",
-    type=click.Choice(["auto", "cpu", "cuda"]),
+    choices=DEVICES,
     default="auto",
-    show_default=True,
     help="Where the encoder runs (auto: cuda when available).",
 )
-weights_option = click.option(
-    "--weights",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Weights file (weights-spec/ format) for --features byoc.",
+weights_option = path_option(
+    "--weights", default=None, help="Weights file (weights-spec/ format) for --features byoc."
 )
-features_option = click.option(
+features_option = choice_option(
     "--features",
-    type=click.Choice(["byoc", "fpfh"]),
+    choices=["byoc", "fpfh"],
     default="byoc",
-    show_default=True,
     help="byoc: the learned geometric encoder (needs --weights); fpfh: Open3D FPFH.",
 )
 

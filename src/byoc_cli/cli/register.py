@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -14,12 +12,17 @@ from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
     device_option,
     features_option,
+    finite_float,
+    float_option,
+    int_option,
     packaged_weights,
+    path_option,
     resolve_device,
     seed_option,
     voxel_size_option,
     weights_option,
 )
+from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
 
 log = logging.getLogger("byoc")
 
@@ -110,24 +113,24 @@ def _unscale(T, scale: float | None):
 )
 @click.argument("source", type=click.Path(path_type=Path))
 @click.argument("target", type=click.Path(path_type=Path))
-@click.option(
+@path_option(
     "-o",
     "--output",
-    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    dash=True,
     default=Path("-"),
     show_default=True,
-    help="Where to write T (4 lines of 4 numbers); '-' is stdout.",
+    help="Where to write T (4 lines of 4 numbers); '-' is stdout (not written when "
+    "--json - is given without -o).",
 )
-@click.option(
+@path_option(
     "--aligned",
-    type=click.Path(dir_okay=False, path_type=Path),
     default=None,
     help="Write the source, transformed into the target frame, as binary PLY.",
 )
-@click.option(
+@path_option(
     "--json",
     "json_path",
-    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    dash=True,
     default=None,
     help="Write a JSON report ('-' is stdout, then T goes only to -o).",
 )
@@ -149,45 +152,33 @@ def _unscale(T, scale: float | None):
     show_default=True,
     help="Refine with point-to-plane ICP (open3d).",
 )
-@click.option(
+@int_option(
     "--max-points",
-    type=click.IntRange(min=0),
-    default=None,
     help="Seeded random subset of kept points per cloud that enters matching (0 = all) "
     "[default: 5000 with byoc features, 10000 with fpfh].",
 )
-@click.option(
+@int_option(
     "--num-correspondences",
-    type=click.IntRange(min=3),
-    default=None,
+    min=3,
     help="Top-k ratio-test matches kept per direction [default: 200 for byoc, 1000 for fpfh].",
 )
-@click.option(
+@float_option(
     "--min-confidence",
-    type=click.FloatRange(0, 1),
+    type=finite_float(0, 1),
     default=0.0,
-    show_default=True,
     help="Exit 3 when the confidence is below this.",
 )
-@click.option(
+@float_option(
     "--scale",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
     help="Multiply input coordinates by this (0.001 for millimetres); disables the "
     "unit check. T is written in the input units.",
 )
-@click.option(
+@path_option(
     "--intrinsics",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
     help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.",
 )
-@click.option(
-    "--depth-scale",
-    type=click.FloatRange(min=0, min_open=True),
-    default=1000.0,
-    show_default=True,
-    help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
+@float_option(
+    "--depth-scale", default=1000.0, help="Depth-image units per metre (1000 = mm, 5000 = TUM)."
 )
 @seed_option
 @device_option
@@ -220,13 +211,16 @@ def register(
     """
     started = time.perf_counter()
     device = resolve_device(device)
-    if str(output) == "-" and json_path is not None and str(json_path) == "-":
-        raise click.UsageError("-o and --json cannot both be stdout")
+    output = _stdout_output(output, json_path)
     for path in (source, target):
         if path.suffix.lower() in DEPTH_EXTENSIONS and intrinsics is None:
             raise click.BadParameter(
                 f"{path} is a depth image: --intrinsics is required", param_hint="'--intrinsics'"
             )
+    outputs = claim_outputs(
+        {"-o": output, "--aligned": aligned, "--json": json_path},
+        inputs=(source, target, intrinsics, weights),
+    )
     defaults = FEATURE_DEFAULTS[features]
     if estimator == "auto":
         estimator = defaults["estimator"]
@@ -236,7 +230,7 @@ def register(
         max_points = defaults["max_points"]
     from byoc_cli import __version__
     from byoc_cli.geometry import apply_transform
-    from byoc_cli.io import atomic_write_text, write_ply, write_transform
+    from byoc_cli.io import atomic_write_text, format_transform, write_ply
     from byoc_cli.pipeline.register import RegisterConfig, register_clouds
 
     extractor, weights_info = _make_extractor(features, weights, voxel_size, device)
@@ -251,7 +245,9 @@ def register(
         refine=None if refine == "none" else "icp",
         seed=seed,
     )
-    result = register_clouds(points_src, points_tgt, extractor, config)
+    result = register_clouds(
+        points_src, points_tgt, extractor, config, labels=(str(source), str(target))
+    )
     T = _unscale(result.T_tgt_src, scale)
     passed = result.confidence >= min_confidence
 
@@ -285,24 +281,14 @@ def register(
         "timings_s": timings,
     }
 
-    written: list[Path] = []
-    try:
+    with outputs:  # every file is committed at the end of the block, or none
         if aligned is not None:
-            moved = apply_transform(T, points_src / (scale or 1.0))
-            write_ply(aligned, moved.numpy())
-            written.append(aligned)
-        if json_path is not None:
-            text = json.dumps(report, indent=2) + "\n"
-            if str(json_path) == "-":
-                sys.stdout.write(text)
-            else:
-                atomic_write_text(json_path, text)
-                written.append(json_path)
-        write_transform(str(output) if str(output) == "-" else output, T.numpy())
-    except BaseException:
-        for path in written:
-            path.unlink(missing_ok=True)
-        raise
+            write_ply(aligned, apply_transform(T, points_src / (scale or 1.0)).numpy())
+        write_json(json_path, report)
+        if is_stdout(output):
+            write_stdout(format_transform(T.numpy()))
+        elif output is not None:
+            atomic_write_text(output, format_transform(T.numpy()))
     log.info(
         "registered %s -> %s: confidence %.3f, %d/%d inliers, %.2f s",
         source,
@@ -318,3 +304,15 @@ def register(
             err=True,
         )
         raise SystemExit(EXIT_LOW_CONFIDENCE)
+
+
+def _stdout_output(output: Path, json_path: Path | None) -> Path | None:
+    """``-o``: None when only ``--json -`` was asked for (the default ``-o -`` then yields)."""
+    from click.core import ParameterSource
+
+    if not (is_stdout(output) and is_stdout(json_path)):
+        return output
+    source = click.get_current_context().get_parameter_source("output")
+    if source is ParameterSource.DEFAULT:
+        return None
+    raise click.UsageError("-o and --json cannot both be stdout")

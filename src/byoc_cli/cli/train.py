@@ -11,11 +11,33 @@ from typing import Any
 
 import click
 
+from byoc_cli.cli.display import progress_bar
 from byoc_cli.cli.errors import handle_errors
+from byoc_cli.cli.options import (
+    DEVICES,
+    SEED,
+    apply,
+    choice_option,
+    float_option,
+    int_option,
+    path_option,
+)
+from byoc_cli.cli.output import write_stdout
+from byoc_cli.io.outputs import check_run_folder
+from byoc_cli.training.config import VARIANTS
 
 log = logging.getLogger("byoc")
 
-_PATH = click.Path(path_type=Path)
+
+def is_run_folder(folder: Path) -> bool:
+    """True when ``folder`` holds the ``config.json`` byoc writes into a run folder."""
+    import json
+
+    try:
+        doc = json.loads((folder / "config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "byoc_cli_version" in doc and "config" in doc
 
 
 def _fmt(value: float | None, spec: str = ".4f") -> str:
@@ -34,29 +56,7 @@ class _Display:
 
     def __enter__(self) -> _Display:
         if not self.quiet:
-            from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeElapsedColumn,
-                TimeRemainingColumn,
-            )
-
-            self.progress = Progress(
-                TextColumn("[bold]train"),
-                BarColumn(),
-                MofNCompleteColumn(),
-                TextColumn("{task.fields[losses]}"),
-                TextColumn("{task.fields[rate]} steps/s"),
-                TimeElapsedColumn(),
-                TextColumn("ETA"),
-                TimeRemainingColumn(),
-                console=Console(stderr=True),
-                transient=False,
-            )
-            self.progress.__enter__()
+            self.progress = progress_bar("{task.fields[losses]}", "{task.fields[rate]} steps/s")
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -161,140 +161,81 @@ def _interrupt_on_sigterm() -> None:
         signal.signal(signal.SIGTERM, _raise_interrupt)
 
 
+#: (option, minimum, help) of the integer settings; None defaults mean "from the config".
+_COUNTS = (
+    ("--steps", 1, "Optimiser steps [default: 200000]."),
+    ("--batch-size", 1, "Pairs per step over all processes [default: 8]."),
+    ("--view-spacing", 1, "Frames between the views of a training pair [default: 20]."),
+    ("--val-spacing", 1, "Frames between validation frames [default: 20]."),
+    ("--val-every", 0, "Validate every N steps, 0 = never [default: 5000]."),
+    ("--val-max-pairs", 0, "At most N validation pairs, evenly spread, 0 = all [default: 0]."),
+    ("--checkpoint-every", 0, "Checkpoint every N steps (and at the end) [default: 1000]."),
+    ("--log-every", 0, "Metrics line every N steps [default: 10]."),
+    ("--num-workers", 0, "Data-loading worker processes [default: 2]."),
+)
+
+#: on/off switches whose default depends on the device.
+_SWITCHES = (
+    (
+        "--amp/--no-amp",
+        "Mixed precision (bfloat16) for the encoders on CUDA [default: on with CUDA].",
+    ),
+    (
+        "--deterministic/--no-deterministic",
+        "Deterministic kernels (bit-exact resume; slower) [default: on for CPU].",
+    ),
+)
+
+
 @click.command(
     "train",
     epilog="Settings: built-in defaults < --config FILE (TOML, same key names with "
     "underscores) < flags. Exit codes: 0 trained; 1 bad data or runtime error; 2 usage error. "
     "Multi-process: torchrun --nproc-per-node N -m byoc_cli.cli.main train ...",
 )
-@click.option(
+@path_option(
     "--rgbd-dir",
+    file=False,
     multiple=True,
-    type=_PATH,
     help="RGB-D video folder(s) to train on (TUM, 3DMatch/7-Scenes, ScanNet, Redwood "
     "layouts); repeat for several. No poses needed.",
 )
-@click.option(
+@path_option(
     "--val-dir",
+    file=False,
     multiple=True,
-    type=_PATH,
     help="Video folder(s) with poses for validation (geometric encoder only).",
 )
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="TOML file of settings (keys as in config.json).",
+@path_option("--config", "config_path", help="TOML file of settings (keys as in config.json).")
+@path_option(
+    "--out",
+    file=False,
+    help="Run folder: a new or empty folder, or a byoc run folder [default: runs/byoc].",
 )
-@click.option("--out", type=_PATH, default=None, help="Run folder [default: runs/byoc].")
-@click.option(
+@path_option(
     "--resume",
-    type=_PATH,
-    default=None,
+    file=False,
     help="Continue the run in this folder exactly from its newest checkpoint.",
 )
+@choice_option("--variant", choices=list(VARIANTS), help="Model variant [default: byoc].")
+@click.option("--arch", help="Geometric encoder: compact | minkunet34c [default: compact].")
+@apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[:2]))
+@float_option("--lr", help="Adam learning rate [default: 1e-4].")
 @click.option(
-    "--variant",
-    type=click.Choice(["byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed"]),
-    default=None,
-    help="Model variant [default: byoc].",
+    "--seed",
+    type=SEED,
+    help="Seeds the initialisation, the data order and every random choice [default: 8].",
 )
-@click.option(
-    "--arch", default=None, help="Geometric encoder: compact | minkunet34c [default: compact]."
-)
-@click.option(
-    "--steps", type=click.IntRange(min=1), default=None, help="Optimiser steps [default: 200000]."
-)
-@click.option(
-    "--batch-size",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Pairs per step over all processes [default: 8].",
-)
-@click.option(
-    "--lr",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Adam learning rate [default: 1e-4].",
-)
-@click.option("--seed", type=click.IntRange(min=0), default=None, help="[default: 8]")
-@click.option(
+@choice_option(
     "--device",
-    type=click.Choice(["auto", "cpu", "cuda"]),
-    default=None,
-    help="[default: auto, cuda when available]",
+    choices=DEVICES,
+    help="Where training runs: auto (cuda when available), cpu or cuda [default: auto].",
 )
-@click.option(
-    "--view-spacing",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Frames between the views of a training pair [default: 20].",
-)
-@click.option(
-    "--val-spacing",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Frames between validation frames [default: 20].",
-)
-@click.option(
-    "--val-every",
-    type=click.IntRange(min=0),
-    default=None,
-    help="Validate every N steps, 0 = never [default: 5000].",
-)
-@click.option(
-    "--val-max-pairs",
-    type=click.IntRange(min=0),
-    default=None,
-    help="At most N validation pairs, evenly spread, 0 = all [default: 0].",
-)
-@click.option(
-    "--checkpoint-every",
-    type=click.IntRange(min=0),
-    default=None,
-    help="Checkpoint every N steps (and at the end) [default: 1000].",
-)
-@click.option(
-    "--log-every",
-    type=click.IntRange(min=0),
-    default=None,
-    help="Metrics line every N steps [default: 10].",
-)
-@click.option(
-    "--num-workers",
-    type=click.IntRange(min=0),
-    default=None,
-    help="Data-loading worker processes [default: 2].",
-)
-@click.option(
-    "--voxel-size",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Voxel size in metres [default: 0.025].",
-)
-@click.option(
-    "--intrinsics",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Intrinsics file for folders that ship none.",
-)
-@click.option(
-    "--depth-scale",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Depth units per metre [default: the layout's convention].",
-)
-@click.option(
-    "--amp/--no-amp",
-    default=None,
-    help="Mixed precision (bfloat16) for the encoders on CUDA [default: on with CUDA].",
-)
-@click.option(
-    "--deterministic/--no-deterministic",
-    default=None,
-    help="Deterministic kernels (bit-exact resume; slower) [default: on for CPU].",
-)
+@apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[2:]))
+@float_option("--voxel-size", help="Voxel size in metres [default: 0.025].")
+@path_option("--intrinsics", help="Intrinsics file for folders that ship none.")
+@float_option("--depth-scale", help="Depth units per metre [default: the layout's convention].")
+@apply(*(click.option(decls, default=None, help=text) for decls, text in _SWITCHES))
 @click.option("--quiet", is_flag=True, help="Plain log lines instead of a progress bar.")
 @click.pass_context
 @handle_errors
@@ -302,10 +243,11 @@ def train(
     ctx: click.Context, config_path: Path | None, resume: Path | None, quiet: bool, **flags: Any
 ) -> None:
     """Train BYOC on RGB-D video without poses and export weights for
-    ``byoc register --weights RUN/weights.safetensors``.
+    'byoc register --weights RUN/weights.safetensors'.
 
     Writes RUN/config.json, RUN/metrics.jsonl, RUN/checkpoints/, RUN/training.png and
-    RUN/weights.safetensors; prints the weights path and SHA-256 on stdout.
+    RUN/weights.safetensors; prints the weights path and SHA-256 on stdout. RUN (--out)
+    must be new, empty or a byoc run folder: a folder holding other files is refused.
     """
     from byoc_cli.cli.options import resolve_device
     from byoc_cli.training.config import load_config_file, resolve_config
@@ -340,6 +282,8 @@ def train(
                 param_hint="'--arch'",
             )
     resolve_device(config.device)  # usage error when cuda is asked for and absent
+    if resume is None:
+        check_run_folder(config.out, is_run_folder)
 
     info = init_distributed(config.device)
     if not info.distributed:
@@ -347,13 +291,8 @@ def train(
     try:
         display = _Display(quiet or not info.is_main)
         with display:
-            callbacks = TrainCallbacks(
-                on_start=display.on_start,
-                on_step=display.on_step,
-                on_log=display.on_log,
-                on_validation=display.on_validation,
-                on_checkpoint=display.on_checkpoint,
-            )
+            hooks = ("on_start", "on_step", "on_log", "on_validation", "on_checkpoint")
+            callbacks = TrainCallbacks(**{hook: getattr(display, hook) for hook in hooks})
             result = run_training(config, resume=resume is not None, callbacks=callbacks, info=info)
     finally:
         shutdown(info)
@@ -378,4 +317,4 @@ def train(
                 f"-> {_fmt(result.validation.get('inlier_pct_mean'), '.1f')}%",
                 err=True,
             )
-        click.echo(f"{result.weights_path}\t{result.weights_sha256}")
+        write_stdout(f"{result.weights_path}\t{result.weights_sha256}\n")

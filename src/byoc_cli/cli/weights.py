@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
 
 from byoc_cli.cli.errors import handle_errors
+from byoc_cli.cli.options import SEED, float_option, path_option
+from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 
 
 @click.group("weights")
@@ -26,20 +27,14 @@ def info(path: Path) -> None:
     out = dict(loaded.metadata)
     out["file_sha256"] = loaded.file_sha256
     out["num_parameters"] = sum(p.numel() for p in loaded.encoder.parameters())
-    click.echo(json.dumps(out, indent=2, sort_keys=True))
+    write_json(Path("-"), out, sort_keys=True)
 
 
 @weights.command("init")
 @click.option("--arch", default="compact", show_default=True, help="Encoder architecture name.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
-@click.option(
-    "--voxel-size",
-    type=click.FloatRange(min=0, min_open=True),
-    default=0.025,
-    show_default=True,
-    help="Voxel size (m) recorded in the metadata.",
-)
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True)
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seeds the initialisation.")
+@float_option("--voxel-size", default=0.025, help="Voxel size (m) recorded in the metadata.")
+@path_option("-o", "--output", required=True, help="The weights file to write.")
 @handle_errors
 def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:
     """Write a randomly initialised encoder (variant random-init) to OUTPUT.
@@ -54,6 +49,7 @@ def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:
             f"unknown architecture {arch!r} (known: {', '.join(sorted(ENCODER_CONFIGS))})",
             param_hint="'--arch'",
         )
-    encoder, meta = init_weights(arch, seed, voxel_size)
-    digest = save_weights(output, encoder, meta)
-    click.echo(f"{output}\t{digest}")
+    with claim_outputs({"-o": output}):
+        encoder, meta = init_weights(arch, seed, voxel_size)
+        digest = save_weights(output, encoder, meta)
+        write_stdout(f"{output}\t{digest}\n")

@@ -10,18 +10,35 @@ POSIX and on Windows within one volume). On any exception the temporary file is 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import errno
 import os
 import secrets
 import stat
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
 from byoc_cli.errors import InputError
 
-__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "write_errors"]
+__all__ = [
+    "STAGER",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "write_errors",
+    "write_problem",
+]
 
 _WRITE_MODES = {"w", "wt", "wb", "w+", "w+t", "w+b", "wb+", "wt+"}
+
+#: Set by :class:`byoc_cli.io.outputs.OutputSet` while a command runs: called with
+#: ``(target, temp)`` once a temporary file is complete; returns True when it takes the
+#: temporary over (to rename it at the end of the run, with the other outputs), False when
+#: ``target`` is not one of its outputs (then it is renamed at once, as usual).
+STAGER: contextvars.ContextVar[Callable[[Path, Path], bool] | None] = contextvars.ContextVar(
+    "byoc_output_stager", default=None
+)
 
 
 def _target(path: str | os.PathLike[str]) -> Path:
@@ -71,9 +88,15 @@ def _fsync_directory(directory: Path) -> None:
         os.close(fd)
 
 
-def _write_problem(exc: OSError) -> str:
+def write_problem(exc: OSError, path: str | os.PathLike[str] | None = None) -> str:
+    """A short phrase for an ``OSError`` raised while creating or writing ``path``."""
     if isinstance(exc, FileNotFoundError):
+        parent = Path(path).parent if path is not None else None
+        if parent is not None and parent.is_dir():
+            return f"cannot write: the file system of {parent} does not accept new files"
         return "cannot write: the folder does not exist"
+    if exc.errno == errno.EROFS:
+        return "cannot write: read-only file system"
     if isinstance(exc, PermissionError):
         return "cannot write: permission denied"
     if isinstance(exc, IsADirectoryError):
@@ -88,7 +111,7 @@ def write_errors(path: str | os.PathLike[str]) -> Iterator[None]:
     try:
         yield
     except OSError as exc:
-        raise InputError(path, _write_problem(exc)) from exc
+        raise InputError(path, write_problem(exc, path)) from exc
 
 
 @contextlib.contextmanager
@@ -138,20 +161,27 @@ def atomic_write(
     try:
         fd, temp = _create_temp(target)
     except OSError as exc:
-        raise InputError(path, _write_problem(exc)) from exc
+        raise InputError(path, write_problem(exc, path)) from exc
+    f = os.fdopen(fd, mode, encoding=encoding, newline=newline)
     try:
-        with os.fdopen(fd, mode, encoding=encoding, newline=newline) as f:
-            yield f
-            try:
-                f.flush()
-                os.fsync(f.fileno())
-            except OSError as exc:  # disk full, quota, I/O error
-                raise InputError(path, _write_problem(exc)) from exc
+        yield f
+        try:
+            f.flush()
+            os.fsync(f.fileno())
+            f.close()
+        except OSError as exc:  # disk full, quota, I/O error
+            raise InputError(path, write_problem(exc, path)) from exc
+        stager = STAGER.get()
+        if stager is not None and stager(target, temp):
+            return
         try:
             os.replace(temp, target)
         except OSError as exc:
-            raise InputError(path, _write_problem(exc)) from exc
+            raise InputError(path, write_problem(exc, path)) from exc
     except BaseException:
+        # closing flushes again, which fails again on a full disk: never let that hide the error
+        with contextlib.suppress(OSError, ValueError):
+            f.close()
         with contextlib.suppress(OSError):
             os.unlink(temp)
         raise

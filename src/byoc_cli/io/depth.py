@@ -8,6 +8,7 @@ is column ``u``, row ``v`` and, by default, is back-projected through its centre
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import NamedTuple
@@ -28,6 +29,14 @@ __all__ = [
 
 #: Raw value that marks a missing measurement in 16-bit depth images (raw 7-Scenes).
 INVALID_DEPTH_16 = 65535
+#: Plausible focal lengths in pixels (a depth camera has a few hundred to a few thousand);
+#: outside, a file is refused instead of back-projecting to absurd coordinates.
+FOCAL_RANGE_PX = (1.0, 1e6)
+#: Largest principal-point coordinate or skew in pixels, and largest image side.
+MAX_PIXEL_COORD = 1e6
+MAX_IMAGE_SIDE = 100_000
+#: Largest depth image read (pixels): a header claiming more is refused before decoding.
+MAX_DEPTH_PIXELS = 64_000_000
 
 
 class Intrinsics(NamedTuple):
@@ -59,16 +68,28 @@ def _validate_K(K: np.ndarray, path: Path) -> np.ndarray:
         )
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError(path, f"focal lengths must be positive (fx={K[0, 0]:g}, fy={K[1, 1]:g})")
+    low, high = FOCAL_RANGE_PX
+    if not (low <= K[0, 0] <= high and low <= K[1, 1] <= high):
+        raise InputError(
+            path,
+            f"focal lengths fx={K[0, 0]:g}, fy={K[1, 1]:g} are not plausible "
+            f"(expected {low:g} to {high:g} pixels)",
+        )
+    if np.abs(K[:2, 1:]).max() > MAX_PIXEL_COORD:
+        raise InputError(
+            path, f"principal point or skew beyond {MAX_PIXEL_COORD:g} pixels: {_fmt(K[:2])}"
+        )
     return K
 
 
 def _image_size(value: object, key: str, path: Path) -> int | None:
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not number or not math.isfinite(value) or value != int(value) or value <= 0:
         raise InputError(path, f"'{key}' must be a positive integer, got {value!r}")
-    if value <= 0:
-        raise InputError(path, f"'{key}' must be a positive integer, got {value!r}")
+    if value > MAX_IMAGE_SIDE:
+        raise InputError(path, f"'{key}' is {value:g}, more than {MAX_IMAGE_SIDE} pixels")
     return int(value)
 
 
@@ -219,7 +240,15 @@ def read_depth_image(path: str | os.PathLike[str], depth_scale: float) -> np.nda
                         f"not a depth image (pixel format {mode!r}; expected 16-bit grayscale "
                         "PNG/TIFF or a 32-bit float TIFF)",
                     )
+                if image.width * image.height > MAX_DEPTH_PIXELS:
+                    raise InputError(
+                        path,
+                        f"image of {image.width} x {image.height} pixels is larger than a "
+                        f"depth image can be ({MAX_DEPTH_PIXELS:,} pixels at most)",
+                    )
                 raw = np.asarray(image)
+        except Image.DecompressionBombError as exc:
+            raise InputError(path, f"image too large to read ({exc})") from exc
         except UnidentifiedImageError as exc:
             raise InputError(path, "not an image file (pillow cannot identify it)") from exc
         except (OSError, SyntaxError, ValueError) as exc:

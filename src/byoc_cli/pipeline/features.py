@@ -16,6 +16,9 @@ from byoc_cli.errors import RegistrationError
 from byoc_cli.geometry import voxelize
 
 MIN_POINTS = 3
+#: A cloud whose kept points lie within this many voxel sizes of one line is collinear: the
+#: features cannot see across it, and the rotation about the line is not determined.
+COLLINEAR_SPREAD = 0.1
 
 #: Open3D tutorial radii for FPFH, as multiples of the voxel size.
 FPFH_NORMAL_RADIUS = 2.0
@@ -50,13 +53,36 @@ class FeatureExtractor(Protocol):
 
 
 def _voxelize_checked(points: torch.Tensor, voxel_size: float, label: str):
+    """Voxelise, refusing what cannot be registered (few voxels, a voxel larger than the
+    cloud, collinear points); raises :class:`RegistrationError` starting with ``label``."""
     grid = voxelize(points, voxel_size)
-    if grid.point_index.numel() < MIN_POINTS:
+    kept = grid.point_index.numel()
+    if kept < MIN_POINTS:
         raise RegistrationError(
-            f"{label}: only {grid.point_index.numel()} voxel(s) at voxel size {voxel_size} m "
+            f"{label}: only {kept} voxel(s) at voxel size {voxel_size:g} m "
             f"(need at least {MIN_POINTS}); is the voxel size or the unit right?"
         )
+    extent = float((points.max(dim=0).values - points.min(dim=0).values).max())
+    if voxel_size > extent:
+        raise RegistrationError(
+            f"{label}: the voxel size {voxel_size:g} m is larger than the cloud "
+            f"({extent:.3g} m across), too few points are left; use a smaller voxel size"
+        )
+    _check_not_collinear(points[grid.point_index].to(torch.float64), voxel_size, label)
     return grid
+
+
+def _check_not_collinear(points: torch.Tensor, voxel_size: float, label: str) -> None:
+    """Refuse ``points (M, 3)`` whose RMS distance from their principal line is below
+    :data:`COLLINEAR_SPREAD` voxel sizes."""
+    centred = points - points.mean(dim=0)
+    singular = torch.linalg.svdvals(centred)  # descending
+    spread = float(singular[1:].square().sum().div(points.shape[0]).sqrt())
+    if spread < COLLINEAR_SPREAD * voxel_size:
+        raise RegistrationError(
+            f"{label}: the points are collinear (all within {spread:.2g} m of one line): "
+            "the rotation about that line cannot be determined"
+        )
 
 
 class ByocExtractor:

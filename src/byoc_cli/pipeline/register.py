@@ -7,6 +7,7 @@ points into the target frame, ``x_tgt = R x_src + t``.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -137,24 +138,12 @@ def estimate_transform(
     start = timer("match", start)
 
     threshold = config.inlier_factor * voxel_size
-    if config.estimator == "procrustes":
-        fit = randomized_procrustes(
-            p,
-            q,
-            w,
-            num_subsets=config.num_subsets,
-            subset_size=config.subset_size,
-            generator=generator,
-        )
-    else:
-        fit = ransac(
-            p,
-            q,
-            inlier_threshold=threshold,
-            max_iterations=config.ransac_iterations,
-            confidence=config.ransac_confidence,
-            generator=generator,
-        )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit = _fit(p, q, w, config, threshold, generator)
+    if caught:  # a degenerate fit (every minimal set rejected): no transform to report
+        reason = str(caught[0].message).split(";")[0]  # not the estimator's fallback
+        raise RegistrationError(f"no transform could be fitted ({reason})")
     T = fit.T_tgt_src.to(torch.float64)
     start = timer("fit", start)
 
@@ -179,6 +168,34 @@ def estimate_transform(
         num_points_tgt=int(tgt.points.shape[0]),
         inlier_threshold=threshold,
         timings=timer.timings,
+    )
+
+
+def _fit(
+    p: torch.Tensor,
+    q: torch.Tensor,
+    w: torch.Tensor,
+    config: RegisterConfig,
+    threshold: float,
+    generator: torch.Generator,
+):
+    """The robust estimator of ``config`` on correspondences ``p, q (K, 3)``, ``w (K,)``."""
+    if config.estimator == "procrustes":
+        return randomized_procrustes(
+            p,
+            q,
+            w,
+            num_subsets=config.num_subsets,
+            subset_size=config.subset_size,
+            generator=generator,
+        )
+    return ransac(
+        p,
+        q,
+        inlier_threshold=threshold,
+        max_iterations=config.ransac_iterations,
+        confidence=config.ransac_confidence,
+        generator=generator,
     )
 
 
@@ -230,6 +247,7 @@ def register_clouds(
     points_tgt: torch.Tensor,
     extractor: FeatureExtractor,
     config: RegisterConfig | None = None,
+    labels: tuple[str, str] = ("source", "target"),
 ) -> RegistrationResult:
     """Register ``points_src`` onto ``points_tgt``.
 
@@ -238,19 +256,21 @@ def register_clouds(
         points_tgt: ``(M, 3)`` target points (metres).
         extractor: computes per-point features (voxelises first).
         config: settings; defaults to :class:`RegisterConfig()`.
+        labels: how errors name the two clouds (their file names in the CLI).
 
     Returns:
         :class:`RegistrationResult` whose ``timings`` also hold ``features_src`` and
         ``features_tgt``.
 
     Raises:
-        RegistrationError: a cloud has fewer than 3 voxels, or no correspondences.
+        RegistrationError: a cloud has fewer than 3 voxels, is smaller than a voxel or
+            collinear; no correspondences; no transform could be fitted.
     """
     config = config or RegisterConfig()
     start = time.perf_counter()
-    src = extractor(points_src, label="source")
+    src = extractor(points_src, label=labels[0])
     t_src = time.perf_counter()
-    tgt = extractor(points_tgt, label="target")
+    tgt = extractor(points_tgt, label=labels[1])
     t_tgt = time.perf_counter()
     result = estimate_transform(src, tgt, config, extractor.voxel_size)
     timings = {"features_src": t_src - start, "features_tgt": t_tgt - t_src, **result.timings}

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import struct
 from datetime import UTC, datetime
 from pathlib import Path
@@ -18,6 +19,7 @@ import torch
 
 from byoc_cli.errors import WeightsError
 from byoc_cli.io.atomic import atomic_write_bytes
+from byoc_cli.io.jsonout import strict_dumps
 from byoc_cli.models.encoder import ENCODER_CONFIGS, EncoderConfig, GeometricEncoder
 
 FORMAT = "byoc-weights"
@@ -38,6 +40,10 @@ _REQUIRED = {
 }
 _TRAINING_REQUIRED = {"variant": str, "steps": int, "seed": int, "metrics": dict}
 _MAX_HEADER_BYTES = 100 * 1024 * 1024
+#: Hard limits checked before anything is built from the metadata.
+MAX_VOXEL_SIZE = 10.0
+MAX_METRICS = 1000
+_CONFIG_FIELDS = {f.name for f in dataclasses.fields(EncoderConfig)}
 
 
 class LoadedWeights(NamedTuple):
@@ -114,7 +120,7 @@ def save_weights(path: str | Path, encoder: GeometricEncoder, metadata: dict[str
     tensors = _state_tensors(encoder)
     meta = dict(metadata)
     meta["tensors_sha256"] = tensors_sha256(tensors)
-    blob = save(tensors, metadata={METADATA_KEY: json.dumps(meta, sort_keys=True)})
+    blob = save(tensors, metadata={METADATA_KEY: strict_dumps(meta, sort_keys=True)})
     atomic_write_bytes(path, blob)
     return hashlib.sha256(blob).hexdigest()
 
@@ -169,17 +175,54 @@ def validate_metadata(path: str | Path, meta: Any) -> EncoderConfig:
         raise WeightsError(
             path, f"unknown architecture {arch!r} (known: {', '.join(sorted(ENCODER_CONFIGS))})"
         )
-    if not meta["voxel_size"] > 0:
-        raise WeightsError(path, "metadata 'voxel_size' must be > 0")
-    try:
-        config = EncoderConfig(**meta["architecture_config"])
-    except (TypeError, ValueError) as exc:
-        raise WeightsError(path, f"architecture_config does not fit {arch!r}: {exc}") from exc
-    if config.name != arch:
-        raise WeightsError(path, f"architecture_config names {config.name!r}, not {arch!r}")
+    voxel = meta["voxel_size"]
+    if not (math.isfinite(voxel) and 0 < voxel <= MAX_VOXEL_SIZE):
+        raise WeightsError(
+            path, f"metadata 'voxel_size' must be in (0, {MAX_VOXEL_SIZE:g}] m, got {voxel!r}"
+        )
+    _check_training(path, meta["training"])
+    config = _named_config(path, arch, meta["architecture_config"])
     if config.out_dim != meta["feature_dim"]:
         raise WeightsError(path, "feature_dim does not match architecture_config")
     return config
+
+
+def _check_training(path: str | Path, training: dict[str, Any]) -> None:
+    """Steps and seed are non-negative, metrics a small object of numbers (or null)."""
+    for key in ("steps", "seed"):
+        if training[key] < 0:
+            raise WeightsError(path, f"metadata 'training.{key}' must be >= 0")
+    metrics = training["metrics"]
+    if len(metrics) > MAX_METRICS:
+        raise WeightsError(path, f"metadata 'training.metrics' has more than {MAX_METRICS} entries")
+    for name, value in metrics.items():
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if value is not None and not number:
+            raise WeightsError(
+                path, f"metadata 'training.metrics.{name}' is not a number ({type(value).__name__})"
+            )
+
+
+def _named_config(path: str | Path, arch: str, raw: dict[str, Any]) -> EncoderConfig:
+    """The configuration of ``arch``, after checking that ``raw`` describes exactly it.
+
+    Nothing is built from ``raw``: an absurd width (say a million channels) is refused
+    here instead of being allocated.
+    """
+    expected = dataclasses.asdict(ENCODER_CONFIGS[arch])
+    unknown = sorted(set(raw) - _CONFIG_FIELDS)
+    if unknown:
+        raise WeightsError(path, f"architecture_config has an unknown key {unknown[0]!r}")
+    for key, want in expected.items():
+        got = raw.get(key)
+        if (tuple(got) if isinstance(want, tuple) and isinstance(got, list) else got) != want:
+            shown = repr(got) if len(repr(got)) <= 60 else f"{repr(got)[:57]}..."
+            raise WeightsError(
+                path,
+                f"architecture_config does not fit {arch!r}: {key} is {shown}, "
+                f"expected {list(want) if isinstance(want, tuple) else want!r}",
+            )
+    return ENCODER_CONFIGS[arch]
 
 
 def load_weights(path: str | Path) -> LoadedWeights:

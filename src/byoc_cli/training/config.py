@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -210,6 +211,8 @@ def _coerce(key: str, value: Any, source: object) -> Any:
             return None
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise InputError(source, f"'{key}' must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise InputError(source, f"'{key}' must be a finite number, got {value!r}")
         return float(value)
     if value is not None and not isinstance(value, str):
         raise InputError(source, f"'{key}' must be a string, got {value!r}")

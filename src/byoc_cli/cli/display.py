@@ -1,0 +1,91 @@
+"""What commands show on stderr: rich progress bars and tables (never on stdout)."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import click
+
+
+def progress_bar(*fields: str) -> Any:
+    """A started rich ``Progress`` on stderr: description, bar, done/total, then a text
+    column for each of ``fields`` (format strings of the task), elapsed time and ETA.
+
+    The caller ends it with ``progress.__exit__(None, None, None)``.
+    """
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    progress = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        *(TextColumn(field) for field in fields),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+    )
+    progress.__enter__()
+    return progress
+
+
+def is_quiet(quiet: bool) -> bool:
+    """``quiet`` or the root group's ``-q``."""
+    ctx = click.get_current_context(silent=True)
+    root = ctx.find_root() if ctx is not None else None
+    return quiet or bool(root is not None and root.params.get("quiet"))
+
+
+def print_table(title: str, columns: list[str], rows: list[list[str]], notes: list[str]) -> None:
+    """A table on stderr (cells and title as text, not rich markup), then ``notes``."""
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    width = None if sys.stderr.isatty() else max(100, 40 + 22 * (len(columns) - 1))
+    console = Console(stderr=True, width=width, highlight=False)
+    # labels such as byoc[run] and paths are text, not rich markup
+    table = Table(title=escape(title), title_justify="left")
+    for k, name in enumerate(columns):
+        table.add_column(escape(name), justify="left" if k == 0 else "right", no_wrap=k == 0)
+    for row in rows:
+        table.add_row(*(escape(cell) for cell in row))
+    console.print(table)
+    for note in notes:
+        console.print(note, markup=False)
+
+
+class EvalDisplay:
+    """Progress bars of the evaluation commands (only when stderr is a terminal and not
+    quiet); the ``display`` the evaluation runners call."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.enabled = not quiet and sys.stderr.isatty()
+        self.progress = None
+        self.tasks: dict[str, Any] = {}
+
+    def __enter__(self) -> EvalDisplay:
+        if self.enabled:
+            self.progress = progress_bar()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.progress is not None:
+            self.progress.__exit__(*exc)
+
+    def start(self, task: str, total: int) -> None:
+        if self.progress is not None and total:
+            self.tasks[task] = self.progress.add_task(task, total=total)
+
+    def advance(self, task: str, steps: int = 1) -> None:
+        if self.progress is not None and task in self.tasks:
+            self.progress.advance(self.tasks[task], steps)

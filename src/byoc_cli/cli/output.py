@@ -1,0 +1,74 @@
+"""Writing a command's results: standard output, JSON reports and the output policy.
+
+Every command opens one :class:`~byoc_cli.io.outputs.OutputSet` (:func:`outputs`), claims
+its output files before the work starts, writes them inside the ``with`` block and has them
+committed together at its end; results for standard output go through :func:`write_stdout`,
+which turns a closed, full or broken stdout into one line and exit 1.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from byoc_cli.cli.errors import StdoutError
+from byoc_cli.io.outputs import OutputSet, is_stdout
+
+__all__ = ["claim_outputs", "is_stdout", "write_json", "write_stdout"]
+
+
+def write_stdout(text: str) -> None:
+    """Write ``text`` to standard output and flush it.
+
+    Raises:
+        StdoutError: stdout is closed, full (``/dev/full``) or a broken pipe.
+    """
+    stream = sys.stdout
+    if stream is None:
+        raise StdoutError("cannot write to stdout: it is closed")
+    try:
+        stream.write(text)
+        stream.flush()
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise StdoutError(f"cannot write to stdout: {reason}") from exc
+
+
+def write_json(path: Path | None, value: Any, indent: int = 2, sort_keys: bool = False) -> None:
+    """Write ``value`` as strict JSON (NaN/Inf as null) to ``path`` (``-``: stdout)."""
+    from byoc_cli.io import atomic_write_text
+    from byoc_cli.io.jsonout import strict_dumps
+
+    if path is None:
+        return
+    text = strict_dumps(value, indent=indent, sort_keys=sort_keys) + "\n"
+    if is_stdout(path):
+        write_stdout(text)
+    else:
+        atomic_write_text(path, text)
+
+
+def claim_outputs(
+    outputs: dict[str, Path | None],
+    inputs: Iterable[Path | None] = (),
+    input_dirs: Iterable[Path | None] = (),
+) -> OutputSet:
+    """An :class:`OutputSet` with every output of ``outputs`` (option -> path) claimed.
+
+    At most one of them may be ``-`` (stdout).
+
+    Raises:
+        click.UsageError: two outputs are ``-``.
+        InputError: the output policy refuses one of them.
+    """
+    to_stdout = [name for name, path in outputs.items() if is_stdout(path)]
+    if len(to_stdout) > 1:
+        raise click.UsageError(f"{' and '.join(to_stdout)} cannot both be stdout")
+    out = OutputSet(inputs, input_dirs)
+    for path in outputs.values():
+        out.claim(path)
+    return out
