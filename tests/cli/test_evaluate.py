@@ -32,7 +32,7 @@ def fmr_run(request, shared_data, tmp_path_factory):
     root = shared_data / "3dmatch" / "sample" / suite
     gt_dir = shared_data / "3dmatch" / "benchmarks" / suite
     args = [
-        "eval-fmr", root, "--method", "byoc", "fpfh-ransac", "--json", tmp / "report.json",
+        "eval-fmr", root, "--method", "byoc-random", "fpfh-ransac", "--json", tmp / "report.json",
         "--cache-dir", tmp / "cache", "--gt-dir", gt_dir, "--plot", tmp / "plot.png",
     ]  # fmt: skip
     result = _invoke(args)
@@ -69,17 +69,17 @@ def test_eval_fmr_agrees_with_brute_force_reference(fmr_run):
     assert report["versions"]["byoc_cli"] and report["versions"]["torch"]
     assert report["versions"]["open3d"] and set(report["protocols"]) >= {"fmr-fcgf", "rr-3dmatch"}
     methods = {m["name"]: m for m in report["methods"]}
-    assert list(methods) == ["byoc", "fpfh-ransac"]
-    assert methods["byoc"]["features_info"]["source"] == "random-init"
+    assert list(methods) == ["byoc-random", "fpfh-ransac"]
+    assert methods["byoc-random"]["features_info"]["source"] == "random-init"
 
     tau1, tau2, k, seed = settings["tau1"], settings["tau2"], settings["top_k"], report["seed"]
-    flags: dict[str, list[bool]] = {"byoc": [], "fpfh": []}
-    corr_flags: dict[str, list[bool]] = {"byoc": [], "fpfh": []}
+    flags: dict[str, list[bool]] = {"byoc-random": [], "fpfh": []}
+    corr_flags: dict[str, list[bool]] = {"byoc-random": [], "fpfh": []}
     for record in report["pairs"]:
         i, j = record["i"], record["j"]
         T_gt = logs[(i, j)]
         pseed = ref.pair_seed(seed, SCENE, i, j)
-        for name in ("byoc", "fpfh-ransac"):
+        for name in ("byoc-random", "fpfh-ransac"):
             key = methods[name]["features"]["key"]
             got = record["features"][key]
             ps, fs = _features(
@@ -109,7 +109,7 @@ def test_eval_fmr_agrees_with_brute_force_reference(fmr_run):
             corr_flags[key].append(got["corr_recalled"])
 
     # summaries: per scene (one scene here), mean and std over scenes, pooled
-    for name in ("byoc", "fpfh-ransac"):
+    for name in ("byoc-random", "fpfh-ransac"):
         key = methods[name]["features"]["key"]
         summary = report["results"][name]
         expected = float(np.mean(flags[key]))
@@ -292,7 +292,7 @@ def test_eval_pairs_rgbd_table_json_plot(shared_data, tmp_path):
             assert summary[key]["mean"] is not None and summary[key]["median"] is not None, name
     table = result.stderr
     assert "rotation acc % < 5 °" in table and "chamfer median" in table
-    assert "random compact encoder seeded with 3" in table
+    assert "byoc: the weights that ship with byoc-cli" in table
     assert plot.read_bytes().startswith(PNG_MAGIC)
 
 

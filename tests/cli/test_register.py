@@ -309,8 +309,6 @@ def test_usage_errors_exit_2(runner, tmp_path):
     src, tgt, _ = _synthetic_pair(tmp_path)
     res = runner.invoke(cli, ["register", str(src), str(tgt), "--estimator", "magic"])
     assert res.exit_code == 2 and "--estimator" in res.stderr
-    res = runner.invoke(cli, ["register", str(src), str(tgt)])  # byoc features need weights
-    assert res.exit_code == 2 and "--weights" in res.stderr
     res = runner.invoke(cli, ["register", str(tmp_path / "d.png"), str(tgt)])
     assert res.exit_code == 2 and "--intrinsics" in res.stderr
 
@@ -366,7 +364,7 @@ def test_depth_images_with_intrinsics_register_real_tum_frames(runner, shared_da
 
 @pytest.mark.parametrize(
     ("features", "expected"),
-    [("fpfh", (10000, "ransac", 2000)), ("byoc", (5000, "procrustes", 400))],
+    [("fpfh", (10000, "ransac", 2000, "none")), ("byoc", (5000, "ransac", 2000, "none"))],
 )
 def test_per_feature_defaults_are_reported(runner, random_weights, tmp_path, features, expected):
     src, tgt, _ = _synthetic_pair(tmp_path)
@@ -377,8 +375,8 @@ def test_per_feature_defaults_are_reported(runner, random_weights, tmp_path, fea
     result = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt")])
     assert result.exit_code in (0, 3), result.output
     r = json.loads(report.read_text())
-    max_points, estimator, most_correspondences = expected
-    assert (r["max_points"], r["estimator"]) == (max_points, estimator)
+    max_points, estimator, most_correspondences, refine = expected
+    assert (r["max_points"], r["estimator"], r["refine"]) == (max_points, estimator, refine)
     assert 3 <= r["num_correspondences"] <= most_correspondences
 
 

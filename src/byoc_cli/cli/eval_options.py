@@ -92,7 +92,8 @@ eval_options = apply(
         multiple=True,
         help="Weights file for byoc; repeat to compare several (columns byoc[name], "
         "byoc[folder/name] when names repeat). "
-        "None: a random compact encoder seeded with --seed.",
+        "None: the weights that ship with byoc-cli (--method byoc-random: a random "
+        "compact encoder seeded with --seed).",
     ),
     path_option(
         "--json",
@@ -166,7 +167,15 @@ class EvalRun:
         if self.weights or "byoc" not in self.names:
             return list(self.weights)
         packaged = packaged_weights()
-        return [packaged] if packaged is not None else []
+        if packaged is None:
+            raise click.UsageError(
+                "--method byoc needs --weights FILE (this install ships no trained weights); "
+                "--method byoc-random evaluates a random encoder"
+            )
+        from byoc_cli.pipeline.default_weights import verify_default_weights
+
+        verify_default_weights()
+        return [packaged]
 
     def build_methods(self, **extra: Any) -> list:
         from byoc_cli.evaluation.methods import build_methods
@@ -198,10 +207,18 @@ class EvalRun:
 
 
 def method_notes(methods) -> list[str]:
-    """Notes under the table: which byoc columns are random encoders."""
+    """Notes under the table: which byoc columns are random encoders or the shipped weights."""
+    from byoc_cli.pipeline.default_weights import default_weights_path
+
+    shipped = default_weights_path()
     notes = []
     for m in methods:
         info = m.features.info if m.features is not None else {}
         if m.kind == "byoc" and info.get("source") == "random-init":
             notes.append(f"note: {m.name}: {info['note']}")
+        elif m.kind == "byoc" and shipped is not None and info.get("path") == str(shipped):
+            notes.append(
+                f"note: {m.name}: the weights that ship with byoc-cli "
+                f"({info['variant']}, {info['steps']} steps)"
+            )
     return notes

@@ -105,7 +105,8 @@ features_option = choice_option(
     "--features",
     choices=["byoc", "fpfh"],
     default="byoc",
-    help="byoc: the learned geometric encoder (needs --weights); fpfh: Open3D FPFH.",
+    help="byoc: the learned geometric encoder (the shipped weights, or --weights); "
+    "fpfh: Open3D FPFH.",
 )
 
 
@@ -121,6 +122,7 @@ def resolve_device(device: str) -> str:
 
 
 def packaged_weights() -> Path | None:
-    """The weights file shipped inside the package, if this version ships one."""
-    path = Path(__file__).resolve().parents[1] / "data" / "weights" / "default.safetensors"
-    return path if path.is_file() else None
+    """The weights file shipped inside the package, if this install ships one."""
+    from byoc_cli.pipeline.default_weights import default_weights_path
+
+    return default_weights_path()

@@ -15,7 +15,6 @@ from byoc_cli.cli.options import (
     finite_float,
     float_option,
     int_option,
-    packaged_weights,
     path_option,
     resolve_device,
     seed_option,
@@ -23,25 +22,11 @@ from byoc_cli.cli.options import (
     weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
+from byoc_cli.pipeline.register import FEATURE_DEFAULTS
 
 log = logging.getLogger("byoc")
 
 DEPTH_EXTENSIONS = (".png", ".tif", ".tiff")
-#: per-feature defaults, chosen by accuracy and time on the 3DMatch sample
-#: (`benchmarks/max_points.py`, README "Choosing --max-points")
-FEATURE_DEFAULTS = {
-    # 5000 of ~20k kept points at 2.5 cm: matching 0.09 s; 10000 costs 3.5x that, all 16x
-    "byoc": {"estimator": "procrustes", "num_correspondences": 200, "max_points": 5000},
-    # Open3D's tutorial voxel for FPFH; RANSAC needs more than the top 200 of noisy FPFH matches;
-    # 10000 keeps every point of a 3DMatch fragment at 5 cm (median rotation error 2.9 deg
-    # against 4.8 deg with 5000) and bounds the matching cost of larger scans
-    "fpfh": {
-        "estimator": "ransac",
-        "num_correspondences": 1000,
-        "voxel_size": 0.05,
-        "max_points": 10000,
-    },
-}
 
 
 def _load_cloud(path: Path, intrinsics: Path | None, depth_scale: float, scale: float | None):
@@ -74,13 +59,19 @@ def _make_extractor(features: str, weights: Path | None, voxel_size: float | Non
         return FpfhExtractor(voxel_size or FEATURE_DEFAULTS["fpfh"]["voxel_size"]), None
     from byoc_cli.pipeline.weights import load_weights
 
-    path = weights or packaged_weights()
-    if path is None:
-        raise click.UsageError(
-            "--features byoc needs --weights PATH (this version ships no trained weights "
-            "yet); or use --features fpfh"
-        )
-    loaded = load_weights(path)
+    if weights is None:
+        from byoc_cli.pipeline.default_weights import default_weights_path, load_default_weights
+
+        path = default_weights_path()
+        if path is None:
+            raise click.UsageError(
+                "--features byoc needs --weights PATH (this install ships no trained weights); "
+                "or use --features fpfh"
+            )
+        loaded = load_default_weights()
+    else:
+        path = weights
+        loaded = load_weights(path)
     trained_voxel = float(loaded.metadata["voxel_size"])
     if voxel_size is not None and abs(voxel_size - trained_voxel) > 1e-9:
         log.warning(
@@ -143,14 +134,14 @@ def _unscale(T, scale: float | None):
     default="auto",
     show_default=True,
     help="Randomized weighted Procrustes (the paper's) or RANSAC; "
-    "auto: procrustes for byoc features, ransac for fpfh.",
+    "auto: ransac for both feature types (README: defaults for learned features).",
 )
 @click.option(
     "--refine",
-    type=click.Choice(["none", "icp"]),
-    default="none",
+    type=click.Choice(["auto", "none", "icp"]),
+    default="auto",
     show_default=True,
-    help="Refine with point-to-plane ICP (open3d).",
+    help="Refine with point-to-plane ICP (open3d); auto: the feature type's default (none).",
 )
 @int_option(
     "--max-points",
@@ -224,6 +215,8 @@ def register(
     defaults = FEATURE_DEFAULTS[features]
     if estimator == "auto":
         estimator = defaults["estimator"]
+    if refine == "auto":
+        refine = defaults["refine"] or "none"
     if num_correspondences is None:
         num_correspondences = defaults["num_correspondences"]
     if max_points is None:

@@ -17,14 +17,26 @@ def weights() -> None:
 
 
 @weights.command("info")
-@click.argument("path", type=click.Path(path_type=Path))
+@click.argument("path", type=click.Path(path_type=Path), required=False)
 @handle_errors
-def info(path: Path) -> None:
-    """Validate PATH against the weights spec and print its metadata as JSON on stdout."""
+def info(path: Path | None) -> None:
+    """Validate PATH against the weights spec and print its metadata as JSON on stdout.
+
+    Without PATH: the weights that ship with byoc-cli (checksum verified).
+    """
     from byoc_cli.pipeline.weights import load_weights
 
-    loaded = load_weights(path)
+    if path is None:
+        from byoc_cli.pipeline.default_weights import default_weights_path, load_default_weights
+
+        if default_weights_path() is None:
+            raise click.UsageError("this install ships no trained weights: name a weights FILE")
+        loaded = load_default_weights()
+    else:
+        loaded = load_weights(path)
     out = dict(loaded.metadata)
+    out["shipped"] = path is None
+    out["path"] = loaded.path
     out["file_sha256"] = loaded.file_sha256
     out["num_parameters"] = sum(p.numel() for p in loaded.encoder.parameters())
     write_json(Path("-"), out, sort_keys=True)

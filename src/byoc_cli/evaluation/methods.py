@@ -3,10 +3,12 @@
 Method names (``--method``):
 
 ``byoc``
-    The learned geometric encoder (``--weights``; without weights a seeded random ``compact``
-    encoder, reported as ``random-init``), voxel size from the weights (2.5 cm), ratio-test
-    top 200 correspondences per direction, randomized Procrustes (100 subsets of 20): the
-    paper's test-time pipeline.
+    The learned geometric encoder (``--weights``, or the shipped weights), voxel size from
+    the weights (2.5 cm), with ``byoc register``'s defaults for learned features
+    (``pipeline.register.FEATURE_DEFAULTS``: top 1000 ratio-test correspondences per
+    direction, RANSAC).
+``byoc-random``
+    The same pipeline on a seeded random ``compact`` encoder (reported as ``random-init``).
 ``fpfh-ransac``
     Open3D FPFH at a 5 cm voxel, top 1000 per direction, correspondence RANSAC (inlier
     threshold 2 voxels, at most 100k iterations, confidence 0.999): ``byoc register
@@ -37,7 +39,12 @@ import torch
 from byoc_cli.errors import RegistrationError
 from byoc_cli.geometry import voxelize
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
-from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
+from byoc_cli.pipeline.register import (
+    FEATURE_DEFAULTS,
+    RegisterConfig,
+    estimate_transform,
+    refine_icp,
+)
 
 __all__ = [
     "DEFAULT_ARCH",
@@ -56,7 +63,15 @@ __all__ = [
 ]
 
 #: Every method name ``--method`` accepts, in table order.
-METHOD_NAMES = ("byoc", "fpfh-ransac", "fpfh-procrustes", "icp-point", "icp-plane", "identity")
+METHOD_NAMES = (
+    "byoc",
+    "byoc-random",
+    "fpfh-ransac",
+    "fpfh-procrustes",
+    "icp-point",
+    "icp-plane",
+    "identity",
+)
 #: FPFH voxel size (m): Open3D's tutorial value, as ``byoc register --features fpfh``.
 FPFH_VOXEL_SIZE = 0.05
 #: ICP input voxel size (m).
@@ -69,7 +84,7 @@ ICP_MAX_ITERATION = 50
 DEFAULT_ARCH = "compact"
 
 _SETTINGS = {
-    "byoc": {"estimator": "procrustes", "num_correspondences": 200},
+    "byoc": {k: v for k, v in FEATURE_DEFAULTS["byoc"].items() if k != "max_points"},
     "fpfh-ransac": {"estimator": "ransac", "num_correspondences": 1000},
     "fpfh-procrustes": {"estimator": "procrustes", "num_correspondences": 200},
 }
@@ -243,36 +258,43 @@ def weights_labels(weights: Sequence[str | Path]) -> list[str]:
     return labels
 
 
+def _random_spec(seed: int, device: str) -> FeatureSpec:
+    """``byoc-random``: a randomly initialised encoder, asked for by name."""
+    from byoc_cli.pipeline.features import ByocExtractor
+    from byoc_cli.pipeline.weights import init_weights, tensors_sha256
+
+    encoder, meta = init_weights(DEFAULT_ARCH, seed)
+    digest = tensors_sha256(
+        {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}
+    )
+    voxel = float(meta["voxel_size"])
+    return FeatureSpec(
+        key="byoc-random",
+        extractor=ByocExtractor(encoder, voxel, device),
+        identity={
+            "extractor": "byoc",
+            "voxel_size": voxel,
+            "weights": "random-init",
+            "architecture": DEFAULT_ARCH,
+            "tensors_sha256": digest,
+        },
+        info={
+            "source": "random-init",
+            "note": f"a random {DEFAULT_ARCH} encoder seeded with {seed} "
+            "(random geometric features, not trained ones)",
+            "architecture": DEFAULT_ARCH,
+            "seed": seed,
+        },
+    )
+
+
 def _byoc_specs(weights: Sequence[Path], seed: int, device: str) -> list[FeatureSpec]:
     from byoc_cli.pipeline.features import ByocExtractor
-    from byoc_cli.pipeline.weights import init_weights, load_weights, tensors_sha256
+    from byoc_cli.pipeline.weights import load_weights
 
+    del seed
     if not weights:
-        encoder, meta = init_weights(DEFAULT_ARCH, seed)
-        digest = tensors_sha256(
-            {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}
-        )
-        voxel = float(meta["voxel_size"])
-        return [
-            FeatureSpec(
-                key="byoc",
-                extractor=ByocExtractor(encoder, voxel, device),
-                identity={
-                    "extractor": "byoc",
-                    "voxel_size": voxel,
-                    "weights": "random-init",
-                    "architecture": DEFAULT_ARCH,
-                    "tensors_sha256": digest,
-                },
-                info={
-                    "source": "random-init",
-                    "note": f"no --weights: a random {DEFAULT_ARCH} encoder seeded with {seed} "
-                    "(random geometric features, not trained ones)",
-                    "architecture": DEFAULT_ARCH,
-                    "seed": seed,
-                },
-            )
-        ]
+        raise ValueError("method byoc needs weights (or use byoc-random for a random encoder)")
     labels = weights_labels(weights)
     specs = []
     for index, path in enumerate(weights):
@@ -338,8 +360,8 @@ def build_methods(
 
     Args:
         names: method names (see :data:`METHOD_NAMES`), already parsed.
-        weights: weights files for ``byoc`` (none: a random encoder seeded with ``seed``).
-        seed: seed of the random encoder.
+        weights: weights files for ``byoc`` (at least one when ``byoc`` is named).
+        seed: seed of the random encoder of ``byoc-random``.
         device: where the encoder runs.
         fpfh_voxel_size: FPFH voxel size (m).
         icp_distance: ICP correspondence distance (m).
@@ -359,6 +381,10 @@ def build_methods(
             for spec in _byoc_specs(weights, seed, device):
                 config = RegisterConfig(max_points=max_points, **_SETTINGS["byoc"])
                 methods.append(Method(spec.key, "byoc", spec, config))
+        elif name == "byoc-random":
+            spec = _random_spec(seed, device)
+            config = RegisterConfig(max_points=max_points, **_SETTINGS["byoc"])
+            methods.append(Method(spec.key, "byoc", spec, config))
         elif name in ("fpfh-ransac", "fpfh-procrustes"):
             fpfh = fpfh or _fpfh_spec(fpfh_voxel_size)
             config = RegisterConfig(max_points=max_points, **_SETTINGS[name])

@@ -1,6 +1,6 @@
 """The weights that ship with byoc-cli (installed with the package, checksummed).
 
-``byoc_cli/weights/default.safetensors`` is the encoder ``byoc register`` uses when no
+``byoc_cli/data/weights/default.safetensors`` is the encoder ``byoc register`` uses when no
 ``--weights`` is given; ``default.sha256`` beside it holds the file's SHA-256, checked on
 every load so that a damaged install is refused instead of registering badly.
 """
@@ -13,31 +13,39 @@ from pathlib import Path
 from byoc_cli.errors import WeightsError
 
 #: folder of the shipped weights inside the installed package
-WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "data" / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.safetensors"
 DEFAULT_CHECKSUM = WEIGHTS_DIR / "default.sha256"
 
 
 def default_weights_path() -> Path | None:
     """The shipped weights file, or None when this install ships none."""
-    return DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.is_file() else None
+    return DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.is_file() else None  # read at call time
 
 
-def verify_default_weights(path: Path = DEFAULT_WEIGHTS, checksum: Path = DEFAULT_CHECKSUM) -> str:
+def verify_default_weights(path: Path | None = None, checksum: Path | None = None) -> str:
     """Check the shipped file against its recorded SHA-256; returns the digest.
+
+    ``path`` and ``checksum`` default to :data:`DEFAULT_WEIGHTS` and :data:`DEFAULT_CHECKSUM`.
 
     Raises:
         WeightsError: the file or its checksum is missing, or they disagree.
     """
+    path = DEFAULT_WEIGHTS if path is None else path
+    checksum = DEFAULT_CHECKSUM if checksum is None else checksum
     if not path.is_file():
         raise WeightsError(path, "no weights ship with this install (pass --weights FILE)")
     try:
         expected = checksum.read_text(encoding="ascii").split()[0].strip().lower()
     except (OSError, IndexError, UnicodeDecodeError) as exc:
-        raise WeightsError(checksum, "the shipped weights' checksum file is missing or empty") from exc
+        raise WeightsError(
+            checksum, "the shipped weights' checksum file is missing or empty"
+        ) from exc
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     if digest != expected:
-        raise WeightsError(path, "the shipped weights do not match their checksum (reinstall byoc-cli)")
+        raise WeightsError(
+            path, "the shipped weights do not match their checksum (reinstall byoc-cli)"
+        )
     return digest
 
 

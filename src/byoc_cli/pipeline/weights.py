@@ -74,6 +74,10 @@ def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
     return digest.hexdigest()
 
 
+#: storage types of floating-point tensors (float16 halves the file; loaded as float32)
+STORAGE_DTYPES = (torch.float32, torch.float16)
+
+
 def _state_tensors(encoder: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.detach().cpu().contiguous().clone() for k, v in encoder.state_dict().items()}
 
@@ -113,11 +117,25 @@ def build_metadata(
     }
 
 
-def save_weights(path: str | Path, encoder: GeometricEncoder, metadata: dict[str, Any]) -> str:
-    """Write ``encoder`` with ``metadata`` atomically; returns the file's SHA-256."""
+def save_weights(
+    path: str | Path,
+    encoder: GeometricEncoder,
+    metadata: dict[str, Any],
+    *,
+    dtype: torch.dtype = torch.float32,
+) -> str:
+    """Write ``encoder`` with ``metadata`` atomically; returns the file's SHA-256.
+
+    ``dtype`` (float32 or float16) is the storage type of the floating-point tensors; the
+    loader always builds a float32 encoder.
+    """
     from safetensors.torch import save
 
-    tensors = _state_tensors(encoder)
+    if dtype not in STORAGE_DTYPES:
+        raise ValueError(f"dtype must be float32 or float16, got {dtype}")
+    tensors = {
+        k: v.to(dtype) if v.is_floating_point() else v for k, v in _state_tensors(encoder).items()
+    }
     meta = dict(metadata)
     meta["tensors_sha256"] = tensors_sha256(tensors)
     blob = save(tensors, metadata={METADATA_KEY: strict_dumps(meta, sort_keys=True)})
@@ -268,12 +286,16 @@ def load_weights(path: str | Path) -> LoadedWeights:
         raise WeightsError(path, f"tensors do not match architecture {config.name!r}: {what}")
     for name, ref in expected.items():
         got = tensors[name]
-        if got.shape != ref.shape or got.dtype != ref.dtype:
+        stored_ok = got.dtype == ref.dtype or (
+            ref.dtype == torch.float32 and got.dtype in STORAGE_DTYPES
+        )
+        if got.shape != ref.shape or not stored_ok:
             raise WeightsError(
                 path,
                 f"tensor {name!r} is {got.dtype} {tuple(got.shape)}, "
                 f"expected {ref.dtype} {tuple(ref.shape)}",
             )
+    tensors = {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}
     encoder.load_state_dict(tensors, strict=True)
     encoder.eval()
     return LoadedWeights(encoder, meta, hashlib.sha256(blob).hexdigest(), str(path))

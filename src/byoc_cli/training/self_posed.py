@@ -378,6 +378,7 @@ def export_encoder(
     data: list[str],
     steps: int,
     metrics: dict[str, float],
+    dtype: torch.dtype = torch.float32,
 ) -> str:
     """Write the encoder as a weights file (variant ``self-posed``); returns its SHA-256."""
     import copy
@@ -409,10 +410,12 @@ def export_encoder(
             "pair_gaps",
         )
     }
-    return save_weights(path, model, meta)
+    return save_weights(path, model, meta, dtype=dtype)
 
 
-def export_checkpoint(checkpoint: str | Path, path: str | Path) -> str:
+def export_checkpoint(
+    checkpoint: str | Path, path: str | Path, dtype: torch.dtype = torch.float32
+) -> str:
     """Write the encoder of a ``self-posed`` checkpoint as a weights file; returns its SHA-256.
 
     Lets a running campaign be measured (or shipped) at any checkpoint without stopping it.
@@ -438,4 +441,6 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path) -> str:
                 if k not in ("kind", "step", "val_time_s")
             }
     data = list(config.rgbd_dir)
-    return export_encoder(encoder, config, Path(path), data, int(state["step"]), metrics)
+    return export_encoder(
+        encoder, config, Path(path), data, int(state["step"]), metrics, dtype=dtype
+    )
