@@ -40,6 +40,13 @@ def main() -> None:
     parser.add_argument("--variant", action="append", default=None)
     parser.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None)
     parser.add_argument("--self-posed-batch", type=int, default=8)
+    parser.add_argument(
+        "--self-posed-options",
+        action="append",
+        default=None,
+        help="extra self-posed rows: comma-separated key=value TrainConfig overrides, "
+        "e.g. 'amp=true,crop_radius=0.6' (repeat for several rows)",
+    )
     args = parser.parse_args()
 
     from byoc_cli.io.rgbd import discover_sequences
@@ -75,14 +82,16 @@ def main() -> None:
     for arch in archs:
         for variant in variants:
             if variant == "self-posed":
-                per, batch = _self_posed(args, arch, samples, seqs, order, device)
-                rate = batch / per
-                reference = reference or rate
-                print(
-                    f"{variant:10s} {arch:12s} {batch:5d} {1 / per:8.3f} {per:8.2f} "
-                    f"{rate:8.2f} {rate / reference:6.2f} {'-':>13s}",
-                    flush=True,
-                )
+                for extra in [""] + (args.self_posed_options or []):
+                    per, batch = _self_posed(args, arch, samples, seqs, order, device, extra)
+                    rate = batch / per
+                    reference = reference or rate
+                    label = f"{variant} {extra}".strip()
+                    print(
+                        f"{label:10s} {arch:12s} {batch:5d} {1 / per:8.3f} {per:8.2f} "
+                        f"{rate:8.2f} {rate / reference:6.2f} {'-':>13s}",
+                        flush=True,
+                    )
                 continue
             config = TrainConfig(
                 variant=variant, arch=arch, batch_size=args.batch_size, amp=args.amp
@@ -120,7 +129,17 @@ def main() -> None:
             del model, opt
 
 
-def _self_posed(args, arch, samples, seqs, order, device):
+def _overrides(text: str) -> dict:
+    out = {}
+    for item in filter(None, text.split(",")):
+        key, value = item.split("=")
+        out[key] = {"true": True, "false": False}.get(value, None)
+        if out[key] is None:
+            out[key] = float(value)
+    return out
+
+
+def _self_posed(args, arch, samples, seqs, order, device, extra=""):
     """Median seconds per self-posed step over the same pairs; returns (s/step, batch)."""
     import numpy as np
 
@@ -132,9 +151,12 @@ def _self_posed(args, arch, samples, seqs, order, device):
 
     del samples
     batch_size = args.self_posed_batch
-    config = TrainConfig(variant="self-posed", arch=arch, batch_size=batch_size)
+    config = TrainConfig(
+        variant="self-posed", arch=arch, batch_size=batch_size, **_overrides(extra)
+    )
     seq = seqs[0]
-    starts = [i for i in order if i + 20 < len(seq.frames)]
+    posed = {i for i in range(len(seq.frames)) if seq.pose(i) is not None}
+    starts = [i for i in order if i in posed and i + 20 in posed]
     steps = args.steps + args.warmup
     starts = (starts * (1 + batch_size * steps // max(len(starts), 1)))[: batch_size * steps]
     frames = {}

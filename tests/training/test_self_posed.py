@@ -145,3 +145,33 @@ def test_cli_self_posed_run_with_validation(shared_data, tmp_path):
     assert loaded.metadata["training"]["variant"] == "self-posed"
     assert loaded.metadata["training"]["recipe"]["num_positives"] == 64
     assert "val_fmr" in loaded.metadata["training"]["metrics"]
+
+
+def test_pairs_from_reuses_an_earlier_runs_pairs(sequence_copies, tmp_path, monkeypatch):
+    data, _ = sequence_copies
+    train(_config(data, tmp_path / "first", steps=1))
+    import byoc_cli.training.self_posed as sp
+
+    def no_estimation(*_args, **_kw):
+        raise AssertionError("pairs were estimated again")
+
+    monkeypatch.setattr(sp, "estimate_pairs", no_estimation)
+    second = train(_config(data, tmp_path / "second", steps=1, pairs_from=str(tmp_path / "first")))
+    assert second.steps == 1
+    a = sorted((tmp_path / "first" / "pseudo_pairs").glob("*.json"))
+    b = sorted((tmp_path / "second" / "pseudo_pairs").glob("*.json"))
+    assert [p.name for p in a] == [p.name for p in b]
+    import json
+
+    assert json.loads(a[0].read_text())["pairs"] == json.loads(b[0].read_text())["pairs"]
+    # other settings: not reused
+    with pytest.raises(AssertionError, match="estimated again"):
+        train(
+            _config(
+                data,
+                tmp_path / "third",
+                steps=1,
+                pair_gaps=(3,),
+                pairs_from=str(tmp_path / "first"),
+            )
+        )

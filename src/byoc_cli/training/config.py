@@ -78,6 +78,9 @@ class TrainConfig:
         aug_scale: ``self-posed``: shared scale jitter ``1 +- aug_scale``.
         aug_min_keep: ``self-posed``: each view keeps a random share >= this of its points.
         pair_gaps: ``self-posed``: frame distances of the self-posed pairs.
+        crop_radius: ``self-posed``: both views cut to a ball of this radius (m); 0 = off.
+        pairs_from: ``self-posed``: an earlier run folder whose self-posed pairs are reused
+            for the same sequences made with the same settings (None: estimate them).
     """
 
     rgbd_dir: tuple[str, ...] = ()
@@ -115,6 +118,8 @@ class TrainConfig:
     aug_scale: float = 0.05
     aug_min_keep: float = 0.7
     pair_gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
+    crop_radius: float = 0.0
+    pairs_from: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "pair_gaps", tuple(int(g) for g in self.pair_gaps))
@@ -145,6 +150,8 @@ class TrainConfig:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.pair_gaps or min(self.pair_gaps) < 1:
             problems.append(f"pair_gaps must be positive frame distances, got {self.pair_gaps}")
+        if not self.crop_radius >= 0:
+            problems.append(f"crop_radius must be >= 0, got {self.crop_radius}")
         if not 0 < self.aug_min_keep <= 1 or not 0 <= self.aug_scale < 1:
             problems.append("aug_min_keep must be in (0, 1] and aug_scale in [0, 1)")
         for name in ("lr", "adam_eps", "voxel_size", "temperature"):

@@ -38,11 +38,15 @@ class AugmentConfig(NamedTuple):
         max_rotation_deg: rotation angle uniform in ``[0, max_rotation_deg)``, per view.
         scale: shared scale uniform in ``[1 - scale, 1 + scale]``.
         min_keep: each view keeps a random share of its points in ``[min_keep, 1]``.
+        crop_radius: when > 0, both views keep only the points within this distance (metres)
+            of one random point of view ``i`` (and of the same place in view ``j``): fewer
+            points per step, the overlap kept.
     """
 
     max_rotation_deg: float = 180.0
     scale: float = 0.05
     min_keep: float = 0.7
+    crop_radius: float = 0.0
 
 
 class View(NamedTuple):
@@ -166,8 +170,34 @@ def make_pair_views(
     generator: torch.Generator,
 ) -> PairViews:
     """Two augmented views of a self-posed pair and their correspondences."""
+    if config.crop_radius > 0:
+        frame_i, frame_j = crop_pair(frame_i, frame_j, T_i_j, config.crop_radius, generator)
     scale = 1.0 + config.scale * (2.0 * float(torch.rand((), generator=generator)) - 1.0)
     view_i = augment_view(frame_i, voxel_size, scale, config, generator)
     view_j = augment_view(frame_j, voxel_size, scale, config, generator)
     matches = match_views(view_i.points, view_j.points, T_i_j, voxel_size)
     return PairViews(view_i, view_j, matches)
+
+
+def crop_pair(
+    frame_i: CachedFrame,
+    frame_j: CachedFrame,
+    T_i_j: torch.Tensor,
+    radius: float,
+    generator: torch.Generator,
+) -> tuple[CachedFrame, CachedFrame]:
+    """Both frames cut to a ball of ``radius`` around one random point of frame ``i``.
+
+    The centre is drawn among the points of ``i`` that land next to a point of ``j``
+    (within 2 cm under ``T_i_j``) when there are any, so that the crops overlap.
+    """
+    points_i, points_j = frame_i.points, frame_j.points
+    T = T_i_j.to(torch.float32)
+    in_i = points_j @ T[:3, :3].T + T[:3, 3]  # frame j's points in frame i
+    probe = torch.randint(len(points_i), (min(256, len(points_i)),), generator=generator)
+    near = torch.cdist(points_i[probe], in_i).min(dim=1).values < 0.02
+    candidates = probe[near] if bool(near.any()) else probe
+    centre = points_i[candidates[torch.randint(len(candidates), (1,), generator=generator)]]
+    keep_i = (points_i - centre).norm(dim=1) < radius
+    keep_j = (in_i - centre).norm(dim=1) < radius
+    return CachedFrame(points_i[keep_i]), CachedFrame(points_j[keep_j])
