@@ -1,0 +1,140 @@
+"""The shipped weights against FPFH (two voxel sizes) and a random encoder, on held-out data.
+
+Usage::
+
+    python benchmarks/default_weights.py --out eval/ [--fragments DEV_FRAGMENTS]
+        [--columns byoc byoc-random fpfh fpfh-2.5cm] [--weights W ...] [--table-only]
+
+Runs, for every pair set, the ``byoc eval-pairs`` / ``byoc eval-fmr`` commands it prints
+(one JSON per command in ``--out``; a JSON already there is reused, so columns can be run at
+different times), then prints the Markdown table of the README: rotation accuracy at 5 deg
+and translation accuracy at 10 cm on the RGB-D pair sets; FMR, corr-FMR and registration
+recall (official) on the fragment sets. ``--weights`` adds a column per file (e.g. the best
+paper-recipe weights). Pair sets: ``tum_fr1_desk_full`` at spacing 10 and 20,
+``tum_fr3_cabinet`` at spacing 2, ``realsense_tabletop`` at spacing 5, the fragments made
+from ``tum_fr1_desk_full`` (``byoc make-fragments ... --frames-per-fragment 25``) and the
+3DMatch sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+
+PAIR_SETS = [
+    ("tum_fr1_desk_full, spacing 10", "rgbd/tum_fr1_desk_full", 10),
+    ("tum_fr1_desk_full, spacing 20", "rgbd/tum_fr1_desk_full", 20),
+    ("tum_fr3_cabinet, spacing 2", "rgbd/tum_fr3_cabinet", 2),
+    ("realsense_tabletop, spacing 5", "rgbd/realsense_tabletop", 5),
+]
+
+
+def _column_args(column: str) -> tuple[list[str], str]:
+    """Extra arguments of a column's command and the method name in its JSON."""
+    if column == "fpfh":
+        return ["--method", "fpfh-ransac"], "fpfh-ransac"
+    if column == "fpfh-2.5cm":
+        return ["--method", "fpfh-ransac", "--fpfh-voxel-size", "0.025"], "fpfh-ransac"
+    if column in ("byoc", "byoc-random"):
+        return ["--method", column], column
+    return ["--method", "byoc", "--weights", column], "byoc"
+
+
+def _slug(column: str) -> str:
+    return Path(column).stem if column.endswith(".safetensors") else column
+
+
+def _run(command: list[str], out: Path) -> dict:
+    if not out.exists():
+        print("$ " + shlex.join(command), file=sys.stderr, flush=True)
+        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    return json.loads(out.read_text())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--fragments", type=Path, default=None)
+    parser.add_argument(
+        "--columns", nargs="+", default=["byoc", "fpfh", "fpfh-2.5cm", "byoc-random"]
+    )
+    parser.add_argument("--weights", type=Path, nargs="*", default=[])
+    parser.add_argument("--table-only", action="store_true")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    columns = list(args.columns) + [str(w) for w in args.weights]
+    labels = {
+        "byoc": "shipped default",
+        "byoc-random": "random init",
+        "fpfh": "fpfh (5 cm)",
+        "fpfh-2.5cm": "fpfh (2.5 cm)",
+    }
+
+    rows = []
+    for name, rel, spacing in PAIR_SETS:
+        cells = []
+        for column in columns:
+            extra, method = _column_args(column)
+            out = args.out / f"pairs-{Path(rel).name}-{spacing}-{_slug(column)}.json"
+            command = [
+                "byoc",
+                "eval-pairs",
+                "--rgbd-dir",
+                str(DATA / rel),
+                "--spacing",
+                str(spacing),
+                *extra,
+                "--json",
+                str(out),
+                "--quiet",
+            ]
+            if args.table_only and not out.exists():
+                cells.append("-")
+                continue
+            r = _run(command, out)["results"][method]
+            cells.append(
+                f"{r['rotation_deg']['accuracy_percent']['5']:.1f} / "
+                f"{r['translation_cm']['accuracy_percent']['10']:.1f}"
+            )
+        rows.append((f"{name}: rot@5° / trans@10cm %", cells))
+    fragment_sets = [
+        (
+            "3DMatch sample",
+            DATA / "3dmatch/sample/3DMatch",
+            ["--gt-dir", str(DATA / "3dmatch/benchmarks/3DMatch")],
+        )
+    ]
+    if args.fragments:
+        fragment_sets.insert(0, ("fragments of tum_fr1_desk_full", args.fragments, []))
+    for name, root, gt in fragment_sets:
+        cells = []
+        for column in columns:
+            extra, method = _column_args(column)
+            out = args.out / f"fmr-{Path(root).name}-{_slug(column)}.json"
+            command = ["byoc", "eval-fmr", str(root), *gt, *extra, "--json", str(out), "--quiet"]
+            if args.table_only and not out.exists():
+                cells.append("-")
+                continue
+            r = _run(command, out)["results"][method]
+            cells.append(
+                f"{100 * r['fmr']['pooled']:.1f} / {100 * r['corr_fmr']['pooled']:.1f} / "
+                f"{100 * r['registration_recall']['pooled']:.1f}"
+            )
+        rows.append((f"{name}: FMR / corr-FMR / RR %", cells))
+    header = "| pair set | " + " | ".join(labels.get(c, Path(c).name) for c in columns) + " |"
+    print(header)
+    print("|" + "---|" * (len(columns) + 1))
+    for name, cells in rows:
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
