@@ -128,19 +128,7 @@ def register_batch(
     shard: tuple[int, int] | None,
     overwrite: bool,
     cache_size: int,
-    features: str,
-    weights: Path | None,
-    voxel_size: float | None,
-    estimator: str,
-    refine: str,
-    max_points: int | None,
-    num_correspondences: int | None,
-    min_confidence: float,
-    scale: float | None,
-    intrinsics: Path | None,
-    depth_scale: float,
-    seed: int,
-    device: str,
+    **options: Any,
 ) -> None:
     """Register every pair of PAIRS, a text file of 'source target [output]' lines
     ('#' comments and blank lines allowed; paths relative to the file), writing one T file
@@ -153,7 +141,8 @@ def register_batch(
     from byoc_cli.io.pairlist import read_pair_list
     from byoc_cli.io.pairlist import shard as take_shard
 
-    device = resolve_device(device)
+    device = resolve_device(options["device"])
+    intrinsics, weights = options["intrinsics"], options["weights"]
     entries = read_pair_list(pairs)
     out_dir = pairs.parent if out_dir is None else out_dir
     if out_dir.exists() and not out_dir.is_dir():
@@ -190,13 +179,18 @@ def register_batch(
         for entry, output in skipped:
             lines.write(_record(entry, output, SKIPPED))
         if todo:
-            registrar = make_registrar(features, weights, voxel_size, device)
+            registrar = make_registrar(options["features"], weights, options["voxel_size"], device)
+            settings = ("estimator", "refine", "max_points", "num_correspondences", "seed")
             run = _PairRunner(
                 registrar,
                 FeatureCache(cache_size),
-                match_settings(estimator, refine, max_points, num_correspondences, seed),
-                {"scale": scale, "intrinsics": intrinsics, "depth_scale": depth_scale},
-                min_confidence,
+                match_settings(*(options[name] for name in settings)),
+                {
+                    "scale": options["scale"],
+                    "intrinsics": intrinsics,
+                    "depth_scale": options["depth_scale"],
+                },
+                options["min_confidence"],
                 inputs,
             )
             with _Progress(len(todo)) as progress:
