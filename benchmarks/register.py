@@ -6,14 +6,18 @@ Prints, on the 3DMatch sample fragments (or any pair given), at 2.5 cm:
   * Open3D FPFH + RANSAC (tutorial settings: mutual filter, 100k iterations, 0.999) at 5 cm and
     2.5 cm on the same pair, and the speed ratio;
   * the sparse convolution's achieved FLOP/s against a dense matmul of the same width;
-  * the peak RSS of the whole `byoc register` command (a subprocess).
+  * the peak RSS of the whole `byoc register` command (a subprocess);
+  * pairs per second of `byoc register-batch` against a loop of single `byoc register`
+    processes on the same pairs (every pair of the sample's fragments; whole processes,
+    shipped weights, defaults), and their ratio.
 
-Usage: python benchmarks/register.py [--repeats 5] [SOURCE TARGET]
+Usage: python benchmarks/register.py [--repeats 5] [--only batch] [SOURCE TARGET]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import statistics
 import subprocess
@@ -32,7 +36,8 @@ from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, regis
 from byoc_cli.pipeline.weights import init_weights, save_weights
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT.parent / "shared" / "data" / "3dmatch" / "sample" / "3DMatch" / "7-scenes-redkitchen"
+DATA = Path(os.environ.get("BYOC_SHARED_DATA", ROOT.parent / "shared" / "data"))
+SAMPLE = DATA / "3dmatch" / "sample" / "3DMatch" / "7-scenes-redkitchen"
 VOXEL = 0.025
 
 
@@ -121,6 +126,47 @@ def peak_rss_of_command(src: Path, tgt: Path, weights: Path) -> float:
     return max(before, after) / 1024.0
 
 
+def batch_vs_loop(folder: Path) -> dict:
+    """Whole-process pairs per second: one `register-batch` against one `register` per pair."""
+    import itertools
+
+    clouds = sorted(folder.glob("cloud_bin_*.ply"))
+    pairs = list(itertools.combinations(clouds, 2))
+    if not pairs:
+        raise SystemExit(f"no cloud_bin_*.ply pairs in {folder} (set BYOC_SHARED_DATA)")
+    byoc = [sys.executable, "-m", "byoc_cli.cli.main", "-q"]
+    with tempfile.TemporaryDirectory() as tmp:
+        listing = Path(tmp) / "pairs.txt"
+        listing.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+        start = time.perf_counter()
+        for k, (a, b) in enumerate(pairs):
+            out = Path(tmp) / f"single_{k}.txt"
+            subprocess.run([*byoc, "register", str(a), str(b), "-o", str(out)], check=True)
+        loop_s = time.perf_counter() - start
+        start = time.perf_counter()
+        done = subprocess.run([*byoc, "register-batch", str(listing), "--out-dir", tmp])
+        batch_s = time.perf_counter() - start
+        assert done.returncode in (0, 3), done.returncode
+        same = all(
+            (Path(tmp) / f"single_{k}.txt").read_bytes()
+            == (Path(tmp) / f"{a.stem}__{b.stem}.txt").read_bytes()
+            for k, (a, b) in enumerate(pairs)
+        )
+    return {"pairs": len(pairs), "loop_s": loop_s, "batch_s": batch_s, "same": same}
+
+
+def print_batch(folder: Path) -> None:
+    b = batch_vs_loop(folder)
+    loop_rate, batch_rate = b["pairs"] / b["loop_s"], b["pairs"] / b["batch_s"]
+    print(
+        f"\nwhole process, {b['pairs']} pairs ({folder.name}, shipped weights, defaults):\n"
+        f"  loop of `byoc register`: {b['loop_s']:.1f} s, {loop_rate:.2f} pairs/s\n"
+        f"  `byoc register-batch`:   {b['batch_s']:.1f} s, {batch_rate:.2f} pairs/s\n"
+        f"  ratio batch / loop: {batch_rate / loop_rate:.2f}x (bar 3x); "
+        f"transforms byte-identical: {b['same']}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -130,7 +176,11 @@ def main() -> None:
         default=[SAMPLE / "cloud_bin_0.ply", SAMPLE / "cloud_bin_4.ply"],
     )
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--only", choices=["batch"], help="Run only the batch-vs-loop part.")
     args = parser.parse_args()
+    if args.only == "batch":
+        print_batch(SAMPLE)
+        return
     src_path, tgt_path = args.pair
     src_np = read_point_cloud(src_path).points
     tgt_np = read_point_cloud(tgt_path).points
@@ -184,6 +234,7 @@ def main() -> None:
         save_weights(weights, encoder, meta)
         rss = peak_rss_of_command(src_path, tgt_path, weights)
     print(f"\npeak RSS of `byoc register` (compact, defaults): {rss:.0f} MB")
+    print_batch(SAMPLE)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,8 @@ from byoc_cli import __version__
 # subcommand name -> (module, attribute); imported only when the command runs or --help asks
 _COMMANDS = {
     "register": ("byoc_cli.cli.register", "register"),
+    "register-batch": ("byoc_cli.cli.batch", "register_batch"),
+    "features": ("byoc_cli.cli.features", "features"),
     "weights": ("byoc_cli.cli.weights", "weights"),
     "train": ("byoc_cli.cli.train", "train"),
     "eval-fmr": ("byoc_cli.cli.evaluate", "eval_fmr"),

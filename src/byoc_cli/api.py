@@ -1,0 +1,481 @@
+"""The Python API: the pipeline of ``byoc register`` with numpy in and out.
+
+``from byoc_cli import register, extract_features, load_weights, load_cloud, Registrar``.
+The functions take ``(N, 3)`` arrays (metres) or file paths, use the same per-feature defaults
+as the CLI (:data:`byoc_cli.pipeline.register.FEATURE_DEFAULTS`) and give the same results
+for the same seed: the ``byoc register``, ``register-batch`` and ``features`` commands are
+built on them. Results are NamedTuples of numpy arrays and numbers. Errors are the typed
+errors of :mod:`byoc_cli.errors`.
+
+torch and the encoder are imported when a function is first called, not on import.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from byoc_cli.pipeline.weights import LoadedWeights
+
+__all__ = [
+    "DEPTH_EXTENSIONS",
+    "Features",
+    "Registrar",
+    "Registration",
+    "extract_features",
+    "load_cloud",
+    "load_weights",
+    "register",
+]
+
+#: inputs read as depth images (they need intrinsics)
+DEPTH_EXTENSIONS = (".png", ".tif", ".tiff")
+
+
+class Features(NamedTuple):
+    """Per-point features of one cloud (what ``byoc features`` writes).
+
+    Attributes:
+        points: ``(M, 3)`` float64 kept points in metres (input coordinates times ``scale``;
+            the first input point of each occupied voxel).
+        feats: ``(M, C)`` float32 L2-normalised features; ``feats[m]`` describes ``points[m]``.
+        point_index: ``(M,)`` int64; ``points[m]`` is input point ``point_index[m]``.
+        voxel_size: the voxel size in metres.
+        scale: the factor the input coordinates were multiplied by (1.0 = metres already).
+        features: ``"byoc"`` or ``"fpfh"``.
+        weights_sha256: SHA-256 of the weights file (None for fpfh).
+    """
+
+    points: np.ndarray
+    feats: np.ndarray
+    point_index: np.ndarray
+    voxel_size: float
+    scale: float
+    features: str
+    weights_sha256: str | None
+
+
+class Registration(NamedTuple):
+    """The result of :func:`register`.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64, maps source points into the target frame
+            (``x_tgt = R x_src + t``, column vectors), in the units of the input.
+        confidence: ratio-weighted inlier share in [0, 1] (0 when fewer than 3 inliers).
+        num_inliers, num_correspondences, inlier_ratio: the verified correspondences.
+        overlap: share of the kept source points that land next to a kept target point.
+        num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
+        inlier_threshold: in metres.
+        voxel_size: in metres.
+        features, estimator, refine: what ran (``refine`` is ``"none"`` or ``"icp"``).
+        max_points, num_correspondences_per_direction, seed: the matching settings.
+        weights_sha256: SHA-256 of the weights file (None for fpfh).
+        timings: seconds per stage (``features_src``, ``features_tgt``, ``match``, ``fit``,
+            ``verify``, ``total``; a stage that was cached reads 0).
+    """
+
+    T_tgt_src: np.ndarray
+    confidence: float
+    num_inliers: int
+    num_correspondences: int
+    inlier_ratio: float
+    overlap: float
+    num_points_src: int
+    num_points_tgt: int
+    inlier_threshold: float
+    voxel_size: float
+    features: str
+    estimator: str
+    refine: str
+    max_points: int
+    num_correspondences_per_direction: int
+    seed: int
+    weights_sha256: str | None
+    timings: dict[str, float]
+
+
+def load_weights(path: str | os.PathLike[str] | None = None) -> LoadedWeights:
+    """Load a weights file (weights-spec/ format); None loads the shipped default weights.
+
+    Returns:
+        a ``LoadedWeights`` (``encoder``, ``metadata``, ``file_sha256``, ``path``) that
+        :func:`register`, :func:`extract_features` and :class:`Registrar` take as ``weights``.
+
+    Raises:
+        WeightsError: the file is missing or invalid, or (None) nothing ships or the shipped
+            file does not match its checksum.
+    """
+    if path is None:
+        from byoc_cli.pipeline.default_weights import load_default_weights
+
+        return load_default_weights()
+    from byoc_cli.pipeline.weights import load_weights as _load
+
+    return _load(path)
+
+
+def load_cloud(
+    path: str | os.PathLike[str],
+    *,
+    intrinsics: str | os.PathLike[str] | None = None,
+    depth_scale: float = 1000.0,
+    scale: float | None = None,
+) -> np.ndarray:
+    """Read a point cloud (.ply, .pcd, .xyz, .pts, .npy) or a depth image as ``(N, 3)`` metres.
+
+    Points with NaN/Inf coordinates are dropped (with a warning).
+
+    Args:
+        path: the file.
+        intrinsics: for depth images (.png, .tif): Open3D intrinsics JSON or a 3x3 text matrix.
+        depth_scale: depth-image units per metre.
+        scale: multiply the coordinates by this (0.001 for millimetres); None checks that the
+            cloud looks like metres.
+
+    Returns:
+        ``(N, 3)`` float64 (times ``scale`` when given).
+
+    Raises:
+        InputError: unreadable or malformed file, a depth image without intrinsics, or (no
+            ``scale``) a cloud that looks like millimetres.
+    """
+    from byoc_cli.errors import InputError
+    from byoc_cli.io import check_units, read_depth_cloud, read_point_cloud
+
+    path = Path(path)
+    if path.suffix.lower() in DEPTH_EXTENSIONS:
+        if intrinsics is None:
+            raise InputError(path, "is a depth image: intrinsics are required (--intrinsics)")
+        loaded = read_depth_cloud(path, Path(intrinsics), depth_scale=depth_scale)
+    else:
+        loaded = read_point_cloud(path)
+    if loaded.num_nonfinite_dropped:
+        warnings.warn(
+            f"{path}: dropped {loaded.num_nonfinite_dropped} point(s) with NaN/Inf coordinates",
+            stacklevel=2,
+        )
+    points = loaded.points
+    if scale is None:
+        check_units(points, path)
+        return points
+    return points * scale
+
+
+def _as_points(cloud: Any, label: str, scale: float | None, **load: Any) -> tuple[np.ndarray, str]:
+    """A path is read with :func:`load_cloud`; an array is checked and scaled the same way."""
+    if isinstance(cloud, (str, os.PathLike)):
+        return load_cloud(cloud, scale=scale, **load), str(cloud)
+    from byoc_cli.errors import ShapeError
+    from byoc_cli.io import check_units
+
+    points = np.asarray(cloud, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
+        raise ShapeError(f"{label}: points must be (N, 3) with N >= 1, got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ShapeError(f"{label}: points must be finite")
+    if scale is None:
+        check_units(points, label)
+        return points, label
+    return points * scale, label
+
+
+class Registrar:
+    """A feature extractor loaded once, for many clouds and pairs.
+
+    Args:
+        features: ``"byoc"`` (the learned encoder) or ``"fpfh"`` (Open3D FPFH).
+        weights: for byoc: a weights file, a :func:`load_weights` result, or None for the
+            shipped weights.
+        voxel_size: metres; None: the weights' voxel size (byoc) or the fpfh default.
+        device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
+
+    Raises:
+        WeightsError: the weights cannot be loaded.
+        ValueError: an unknown ``features`` name.
+    """
+
+    def __init__(
+        self,
+        features: str = "byoc",
+        weights: str | os.PathLike[str] | LoadedWeights | None = None,
+        voxel_size: float | None = None,
+        device: str = "auto",
+    ) -> None:
+        from byoc_cli.pipeline.register import FEATURE_DEFAULTS
+
+        if features not in FEATURE_DEFAULTS:
+            raise ValueError(
+                f"features must be one of {sorted(FEATURE_DEFAULTS)}, got {features!r}"
+            )
+        self.features = features
+        self.defaults: Mapping[str, Any] = FEATURE_DEFAULTS[features]
+        self.device = _resolve_device(device)
+        self.weights_info: dict[str, Any] | None = None
+        self.extractor = self._make_extractor(weights, voxel_size)
+        self.voxel_size = float(self.extractor.voxel_size)
+
+    @property
+    def weights_sha256(self) -> str | None:
+        return self.weights_info["sha256"] if self.weights_info else None
+
+    def _make_extractor(self, weights: Any, voxel_size: float | None):
+        from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
+
+        if self.features == "fpfh":
+            return FpfhExtractor(voxel_size or self.defaults["voxel_size"])
+        if weights is None or isinstance(weights, (str, os.PathLike)):
+            loaded = load_weights(weights)
+        else:
+            loaded = weights
+        trained_voxel = float(loaded.metadata["voxel_size"])
+        if voxel_size is not None and abs(voxel_size - trained_voxel) > 1e-9:
+            warnings.warn(
+                f"--voxel-size {voxel_size:g} differs from the {trained_voxel:g} m the weights "
+                "were trained at",
+                stacklevel=3,
+            )
+        self.weights_info = {
+            "path": str(loaded.path),
+            "sha256": loaded.file_sha256,
+            "architecture": loaded.metadata["architecture"],
+            "variant": loaded.metadata["training"]["variant"],
+            "code_version": loaded.metadata["code_version"],
+        }
+        return ByocExtractor(loaded.encoder, voxel_size or trained_voxel, self.device)
+
+    def extract(
+        self,
+        cloud: Any,
+        *,
+        scale: float | None = None,
+        label: str | None = None,
+        intrinsics: str | os.PathLike[str] | None = None,
+        depth_scale: float = 1000.0,
+    ) -> Features:
+        """Features of one cloud (an ``(N, 3)`` array in metres, or a file).
+
+        Args:
+            cloud: points or a path (read with :func:`load_cloud`).
+            scale: multiply the coordinates by this first (None: check they look like metres).
+            label: how errors name the cloud (default: its path, or ``"cloud"``).
+            intrinsics, depth_scale: for depth-image files.
+
+        Raises:
+            InputError, ShapeError: unreadable or malformed input.
+            RegistrationError: fewer than 3 voxels, a voxel larger than the cloud, collinear.
+        """
+        points, name = _as_points(
+            cloud, label or "cloud", scale, intrinsics=intrinsics, depth_scale=depth_scale
+        )
+        return self._extract(points, scale, label or name)
+
+    def _extract(self, points: np.ndarray, scale: float | None, label: str) -> Features:
+        """Features of ``points (N, 3)`` already in metres."""
+        import torch
+
+        got = self.extractor(torch.from_numpy(points), label=label)
+        return Features(
+            points=got.points.numpy(),
+            feats=got.feats.numpy(),
+            point_index=got.point_index.numpy(),
+            voxel_size=self.voxel_size,
+            scale=1.0 if scale is None else float(scale),
+            features=self.features,
+            weights_sha256=self.weights_sha256,
+        )
+
+    def match(
+        self,
+        src: Features,
+        tgt: Features,
+        *,
+        estimator: str | None = None,
+        refine: str | None = None,
+        max_points: int | None = None,
+        num_correspondences: int | None = None,
+        seed: int = 0,
+    ) -> Registration:
+        """Register two featured clouds: ratio-test matches, the robust fit, verification.
+
+        Args:
+            src, tgt: :meth:`extract` results (same features, voxel size and scale).
+            estimator: ``"ransac"`` or ``"procrustes"``; None: the feature type's default.
+            refine: ``"none"`` or ``"icp"``; None: the feature type's default.
+            max_points: seeded random subset per cloud that enters matching (0 = all).
+            num_correspondences: top-k ratio-test matches kept per direction.
+            seed: seeds every random choice.
+
+        Raises:
+            RegistrationError: no correspondences, or no transform could be fitted.
+            ValueError: the two clouds' features do not go together.
+        """
+        import torch
+
+        from byoc_cli.pipeline.features import CloudFeatures
+        from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
+
+        if (src.features, src.voxel_size, src.scale) != (tgt.features, tgt.voxel_size, tgt.scale):
+            raise ValueError("src and tgt must have the same features, voxel size and scale")
+        estimator = estimator or self.defaults["estimator"]
+        refine = refine or (self.defaults["refine"] or "none")
+        if max_points is None:
+            max_points = self.defaults["max_points"]
+        if num_correspondences is None:
+            num_correspondences = self.defaults["num_correspondences"]
+        config = RegisterConfig(
+            num_correspondences=num_correspondences,
+            max_points=max_points,
+            estimator=estimator,
+            refine=None if refine == "none" else refine,
+            seed=seed,
+        )
+
+        def cloud(f: Features) -> CloudFeatures:
+            return CloudFeatures(
+                torch.from_numpy(f.points),
+                torch.from_numpy(f.feats),
+                torch.from_numpy(f.point_index),
+                torch.empty(0, 3, dtype=torch.int64),  # voxel coordinates: unused by matching
+            )
+
+        result = estimate_transform(cloud(src), cloud(tgt), config, src.voxel_size)
+        T = result.T_tgt_src.clone()
+        T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s
+        return Registration(
+            T_tgt_src=T.numpy(),
+            confidence=result.confidence,
+            num_inliers=result.num_inliers,
+            num_correspondences=result.num_correspondences,
+            inlier_ratio=result.inlier_ratio,
+            overlap=result.overlap,
+            num_points_src=result.num_points_src,
+            num_points_tgt=result.num_points_tgt,
+            inlier_threshold=result.inlier_threshold,
+            voxel_size=src.voxel_size,
+            features=self.features,
+            estimator=estimator,
+            refine=refine,
+            max_points=max_points,
+            num_correspondences_per_direction=num_correspondences,
+            seed=seed,
+            weights_sha256=self.weights_sha256,
+            timings=dict(result.timings),
+        )
+
+    def register(
+        self,
+        source: Any,
+        target: Any,
+        *,
+        scale: float | None = None,
+        intrinsics: str | os.PathLike[str] | None = None,
+        depth_scale: float = 1000.0,
+        **settings: Any,
+    ) -> Registration:
+        """Read both clouds, extract their features and :meth:`match` them.
+
+        ``source`` and ``target`` are arrays or files as for :meth:`extract`; ``settings`` are
+        :meth:`match`'s keywords. ``timings`` also hold ``load``, ``features_src``,
+        ``features_tgt`` and ``total``.
+        """
+        start = time.perf_counter()
+        load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
+        points_src, name_src = _as_points(source, "source", scale, **load)
+        points_tgt, name_tgt = _as_points(target, "target", scale, **load)
+        t_load = time.perf_counter()
+        src = self._extract(points_src, scale, name_src)
+        t_src = time.perf_counter()
+        tgt = self._extract(points_tgt, scale, name_tgt)
+        t_tgt = time.perf_counter()
+        result = self.match(src, tgt, **settings)
+        timings = {
+            "load": t_load - start,
+            "features_src": t_src - t_load,
+            "features_tgt": t_tgt - t_src,
+            **result.timings,
+            "total": time.perf_counter() - start,
+        }
+        return result._replace(timings=timings)
+
+
+def _resolve_device(device: str) -> str:
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
+    return device
+
+
+def extract_features(
+    cloud: Any,
+    *,
+    features: str = "byoc",
+    weights: str | os.PathLike[str] | LoadedWeights | None = None,
+    voxel_size: float | None = None,
+    scale: float | None = None,
+    device: str = "auto",
+    intrinsics: str | os.PathLike[str] | None = None,
+    depth_scale: float = 1000.0,
+) -> Features:
+    """Per-point features of one cloud (``(N, 3)`` metres or a file); see :class:`Features`.
+
+    For many clouds build one :class:`Registrar` (the weights are loaded once).
+    """
+    registrar = Registrar(features, weights, voxel_size, device)
+    return registrar.extract(cloud, scale=scale, intrinsics=intrinsics, depth_scale=depth_scale)
+
+
+def register(
+    source: Any,
+    target: Any,
+    *,
+    features: str = "byoc",
+    weights: str | os.PathLike[str] | LoadedWeights | None = None,
+    voxel_size: float | None = None,
+    estimator: str | None = None,
+    refine: str | None = None,
+    max_points: int | None = None,
+    num_correspondences: int | None = None,
+    seed: int = 0,
+    scale: float | None = None,
+    device: str = "auto",
+    intrinsics: str | os.PathLike[str] | None = None,
+    depth_scale: float = 1000.0,
+) -> Registration:
+    """Register ``source`` onto ``target`` as ``byoc register`` does (same defaults, same T).
+
+    Args:
+        source, target: ``(N, 3)`` arrays in metres, or point-cloud / depth-image files.
+        features, weights, voxel_size, device: see :class:`Registrar`.
+        estimator, refine, max_points, num_correspondences, seed: see :meth:`Registrar.match`.
+        scale: multiply the inputs by this (0.001 for millimetres); T is in the input units.
+        intrinsics, depth_scale: for depth-image files.
+
+    Returns:
+        :class:`Registration`.
+
+    Raises:
+        InputError, ShapeError, WeightsError, RegistrationError: see :class:`Registrar`.
+    """
+    registrar = Registrar(features, weights, voxel_size, device)
+    return registrar.register(
+        source,
+        target,
+        scale=scale,
+        intrinsics=intrinsics,
+        depth_scale=depth_scale,
+        estimator=estimator,
+        refine=refine,
+        max_points=max_points,
+        num_correspondences=num_correspondences,
+        seed=seed,
+    )

@@ -1,0 +1,319 @@
+"""``byoc register-batch PAIRS``: many pairs in one process (the encoder loaded once).
+
+Each pair's T file is written atomically when the pair finishes and its line is appended to
+the JSON Lines summary (flushed), so a killed run loses at most the pair in flight and a rerun
+skips the pairs whose T file exists. One pair's failure is recorded and the others go on.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+import click
+
+from byoc_cli.cli.errors import EXIT_ERROR, EXIT_LOW_CONFIDENCE, EXIT_OK, handle_errors
+from byoc_cli.cli.options import int_option, path_option, resolve_device
+from byoc_cli.cli.register import (
+    check_depth_inputs,
+    make_registrar,
+    match_settings,
+    register_options,
+    registration_report,
+)
+
+log = logging.getLogger("byoc")
+
+#: a pair's status in the summary
+OK, LOW_CONFIDENCE, FAILED, SKIPPED = "ok", "low_confidence", "failed", "skipped"
+
+
+class ShardType(click.ParamType):
+    """``I/N`` with 1 <= I <= N: the I-th of N shards."""
+
+    name = "I/N"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        if isinstance(value, tuple):
+            return value
+        try:
+            index, count = (int(part) for part in str(value).split("/"))
+        except ValueError:
+            self.fail(f"{value!r} is not I/N (for example 2/8).", param, ctx)
+        if not 1 <= index <= count:
+            self.fail(f"{value!r}: I must be between 1 and N.", param, ctx)
+        return index, count
+
+
+class FeatureCache:
+    """The features of the last ``size`` clouds used (least recently used goes first)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[Any, Any] = OrderedDict()
+
+    def get(self, key: Any, compute) -> tuple[Any, bool]:
+        """``(features, was_cached)``; ``compute()`` makes them on a miss."""
+        if key in self._items:
+            self._items.move_to_end(key)
+            return self._items[key], True
+        value = compute()
+        self._items[key] = value
+        if len(self._items) > self.size:
+            self._items.popitem(last=False)
+        return value, False
+
+
+def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
+    """Each pair with its T file; two pairs writing one file is bad input."""
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.pairlist import default_output_name
+
+    planned, seen = [], {}
+    for entry in pairs:
+        output = entry.output or out_dir / default_output_name(entry.source, entry.target)
+        key = output.resolve()
+        if key in seen:
+            raise InputError(
+                output, f"is the T file of line {seen[key]} and of line {entry.line} of the list"
+            )
+        seen[key] = entry.line
+        planned.append((entry, output))
+    return planned
+
+
+@click.command(
+    "register-batch",
+    epilog="Exit codes: 0 every pair registered (or skipped); 1 bad input, or a pair failed "
+    "(the others are still registered); 2 usage error; 3 a pair registered below "
+    "--min-confidence (its T file is still written).",
+)
+@click.argument("pairs", type=click.Path(path_type=Path, dir_okay=False))
+@path_option(
+    "--out-dir",
+    file=False,
+    default=None,
+    help="Folder of the T files of lines without an output column, named "
+    "<source-stem>__<target-stem>.txt [default: the list's folder]; created if missing.",
+)
+@path_option(
+    "--summary",
+    default=None,
+    help="JSON Lines summary, one object per pair, appended as pairs finish "
+    "[default: OUT_DIR/summary.jsonl; summary.shard-I-of-N.jsonl with --shard].",
+)
+@click.option(
+    "--shard",
+    type=ShardType(),
+    default=None,
+    help="Only the pairs I, I+N, I+2N, ... of the list (1 <= I <= N), for job arrays.",
+)
+@click.option("--overwrite", is_flag=True, help="Register pairs whose T file exists again.")
+@int_option(
+    "--cache-size",
+    min=1,
+    default=32,
+    help="Clouds whose features are kept in memory for later pairs (least recently used "
+    "dropped first).",
+)
+@register_options
+@handle_errors
+def register_batch(
+    pairs: Path,
+    out_dir: Path | None,
+    summary: Path | None,
+    shard: tuple[int, int] | None,
+    overwrite: bool,
+    cache_size: int,
+    **options: Any,
+) -> None:
+    """Register every pair of PAIRS, a text file of 'source target [output]' lines
+    ('#' comments and blank lines allowed; paths relative to the file), writing one T file
+    per pair and a JSON Lines summary; every option of `byoc register` applies to each pair.
+
+    A rerun skips the pairs whose T file exists (--overwrite to redo them).
+    """
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.outputs import OutputSet
+    from byoc_cli.io.pairlist import read_pair_list
+    from byoc_cli.io.pairlist import shard as take_shard
+
+    device = resolve_device(options["device"])
+    intrinsics, weights = options["intrinsics"], options["weights"]
+    entries = read_pair_list(pairs)
+    out_dir = pairs.parent if out_dir is None else out_dir
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(out_dir, "is not a folder (--out-dir)")
+    planned = _plan(entries, out_dir)
+    if shard is not None:
+        planned = [planned[e.index] for e in take_shard(entries, shard[0] - 1, shard[1])]
+    check_depth_inputs(
+        [p for entry, _ in planned for p in (entry.source, entry.target)], intrinsics
+    )
+    if summary is None:
+        name = "summary.jsonl" if shard is None else f"summary.shard-{shard[0]}-of-{shard[1]}.jsonl"
+        summary = out_dir / name
+    inputs = [pairs, intrinsics, weights, *(p for e, _ in planned for p in (e.source, e.target))]
+    todo, skipped = [], []
+    made = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        policy = OutputSet(inputs)
+        policy.claim(summary)
+        for entry, output in planned:
+            policy.claim(output)  # every output is checked before the first pair runs
+            if output.exists() and not overwrite:
+                skipped.append((entry, output))
+            else:
+                todo.append((entry, output))
+    except Exception:
+        if made:  # bad input leaves nothing behind
+            out_dir.rmdir()
+        raise
+
+    counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
+    with _Summary(summary) as lines:
+        for entry, output in skipped:
+            lines.write(_record(entry, output, SKIPPED))
+        if todo:
+            registrar = make_registrar(options["features"], weights, options["voxel_size"], device)
+            settings = ("estimator", "refine", "max_points", "num_correspondences", "seed")
+            run = _PairRunner(
+                registrar,
+                FeatureCache(cache_size),
+                match_settings(*(options[name] for name in settings)),
+                {
+                    "scale": options["scale"],
+                    "intrinsics": intrinsics,
+                    "depth_scale": options["depth_scale"],
+                },
+                options["min_confidence"],
+                inputs,
+            )
+            with _Progress(len(todo)) as progress:
+                for entry, output in todo:
+                    record = run(entry, output)
+                    counts[record["status"]] += 1
+                    lines.write(record)
+                    progress.advance(f"{counts[FAILED]} failed")
+                    if record["status"] == FAILED:
+                        click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
+    click.echo(
+        f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
+        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}",
+        err=True,
+    )
+    if counts[FAILED]:
+        raise SystemExit(EXIT_ERROR)
+    raise SystemExit(EXIT_LOW_CONFIDENCE if counts[LOW_CONFIDENCE] else EXIT_OK)
+
+
+def _record(entry, output: Path, status: str, error: str | None = None) -> dict:
+    return {
+        "index": entry.index,
+        "line": entry.line,
+        "source": str(entry.source),
+        "target": str(entry.target),
+        "output": str(output),
+        "status": status,
+        "error": error,
+    }
+
+
+class _PairRunner:
+    """Registers one pair with the shared registrar and feature cache; never raises for a
+    bad pair (its record says why)."""
+
+    def __init__(self, registrar, cache, settings, load, min_confidence, inputs) -> None:
+        self.registrar, self.cache, self.settings = registrar, cache, settings
+        self.load, self.min_confidence, self.inputs = load, min_confidence, inputs
+
+    def _features(self, path: Path, timings: dict, stage: str):
+        start = time.perf_counter()
+        feats, cached = self.cache.get(
+            path.resolve(), lambda: self.registrar.extract(path, **self.load)
+        )
+        timings[stage] = 0.0 if cached else time.perf_counter() - start
+        return feats
+
+    def __call__(self, entry, output: Path) -> dict:
+        from byoc_cli.io import atomic_write_text, format_transform
+        from byoc_cli.io.outputs import OutputSet
+
+        started = time.perf_counter()
+        timings: dict[str, float] = {}
+        try:
+            src = self._features(entry.source, timings, "features_src")
+            tgt = self._features(entry.target, timings, "features_tgt")
+            result = self.registrar.match(src, tgt, **self.settings)
+            result = result._replace(timings={**timings, **result.timings})
+            policy = OutputSet(self.inputs)
+            policy.claim(output)
+            with policy:  # the T file appears complete, or not at all
+                atomic_write_text(output, format_transform(result.T_tgt_src))
+        except Exception as exc:  # one bad pair must not stop the others
+            log.debug("pair on line %d failed", entry.line, exc_info=True)
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            return _record(entry, output, FAILED, message)
+        passed = result.confidence >= self.min_confidence
+        report = registration_report(
+            result,
+            self.registrar,
+            entry.source,
+            entry.target,
+            self.min_confidence,
+            self.load["scale"],
+            self.registrar.device,
+            started,
+        )
+        report["timings_s"]["pair"] = report["timings_s"].pop("command")
+        return {**_record(entry, output, OK if passed else LOW_CONFIDENCE), **report}
+
+
+class _Summary:
+    """The JSON Lines summary, appended one flushed line at a time."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __enter__(self) -> _Summary:
+        self.file = open(self.path, "a", encoding="utf-8")
+        return self
+
+    def write(self, record: dict) -> None:
+        from byoc_cli.io.jsonout import strict_dumps
+
+        self.file.write(strict_dumps(record) + "\n")
+        self.file.flush()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.file.close()
+
+
+class _Progress:
+    """A progress bar with ETA on stderr (none with -q)."""
+
+    def __init__(self, total: int) -> None:
+        from byoc_cli.cli.display import is_quiet
+
+        self.total, self.bar, self.task = total, None, None
+        self.quiet = is_quiet(False)
+
+    def __enter__(self) -> _Progress:
+        if not self.quiet:
+            from byoc_cli.cli.display import progress_bar
+
+            self.bar = progress_bar("{task.fields[note]}")
+            self.task = self.bar.add_task("pairs", total=self.total, note="")
+        return self
+
+    def advance(self, note: str) -> None:
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, note=note)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)

@@ -1,0 +1,140 @@
+"""``byoc features CLOUD -o feats.npz``: per-point descriptors for other solvers.
+
+The npz holds ``points (M, 3)`` float64 (metres), ``features (M, C)`` float32 (unit norm;
+row m describes point m), ``point_index (M,)`` int64 (rows of the input), ``voxel_size``
+(metres), ``scale``, ``method`` and ``weights_sha256`` (empty for fpfh). ``--npy`` writes
+``<stem>.points.npy``, ``<stem>.feats.npy`` and ``<stem>.meta.json`` instead.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from pathlib import Path
+
+import click
+
+from byoc_cli.cli.errors import handle_errors
+from byoc_cli.cli.options import (
+    apply,
+    device_option,
+    features_option,
+    float_option,
+    path_option,
+    resolve_device,
+    voxel_size_option,
+    weights_option,
+)
+from byoc_cli.cli.output import claim_outputs, write_json
+from byoc_cli.cli.register import check_depth_inputs, make_registrar
+
+log = logging.getLogger("byoc")
+
+
+def _npy_bytes(array) -> bytes:
+    import numpy as np
+
+    buffer = io.BytesIO()
+    np.save(buffer, array, allow_pickle=False)
+    return buffer.getvalue()
+
+
+def _npz_bytes(feats) -> bytes:
+    import numpy as np
+
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        points=feats.points,
+        features=feats.feats,
+        point_index=feats.point_index,
+        voxel_size=np.float64(feats.voxel_size),
+        scale=np.float64(feats.scale),
+        method=np.str_(feats.features),
+        weights_sha256=np.str_(feats.weights_sha256 or ""),
+    )
+    return buffer.getvalue()
+
+
+@click.command("features")
+@click.argument("cloud", type=click.Path(path_type=Path))
+@path_option(
+    "-o",
+    "--output",
+    required=True,
+    help="The .npz file to write; with --npy, the stem of the .npy files (a trailing .npz "
+    "is dropped).",
+)
+@click.option(
+    "--npy",
+    is_flag=True,
+    help="Write <stem>.points.npy, <stem>.feats.npy and <stem>.meta.json instead of one npz.",
+)
+@apply(features_option, weights_option, voxel_size_option)
+@float_option(
+    "--scale",
+    help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
+    "check. Points are written in metres.",
+)
+@path_option("--intrinsics", help="For a depth-image input: intrinsics JSON or 3x3 text.")
+@float_option("--depth-scale", default=1000.0, help="Depth-image units per metre.")
+@device_option
+@handle_errors
+def features(
+    cloud: Path,
+    output: Path,
+    npy: bool,
+    features: str,
+    weights: Path | None,
+    voxel_size: float | None,
+    scale: float | None,
+    intrinsics: Path | None,
+    depth_scale: float,
+    device: str,
+) -> None:
+    """Write the kept points of CLOUD and their features (the encoder's, or FPFH) for
+    TEASER++, Open3D's RANSAC or a matcher of your own (README: "Descriptors for other tools").
+    """
+    from byoc_cli.io import atomic_write_bytes
+
+    device = resolve_device(device)
+    check_depth_inputs((cloud,), intrinsics)
+    if npy:
+        stem = output.with_suffix("") if output.suffix == ".npz" else output
+        names = {
+            "points": stem.with_name(stem.name + ".points.npy"),
+            "feats": stem.with_name(stem.name + ".feats.npy"),
+            "meta": stem.with_name(stem.name + ".meta.json"),
+        }
+        claimed = {f"-o ({kind})": path for kind, path in names.items()}
+    else:
+        claimed = {"-o": output}
+    outputs = claim_outputs(claimed, inputs=(cloud, intrinsics, weights))
+    registrar = make_registrar(features, weights, voxel_size, device)
+    feats = registrar.extract(cloud, scale=scale, intrinsics=intrinsics, depth_scale=depth_scale)
+    with outputs:
+        if npy:
+            atomic_write_bytes(names["points"], _npy_bytes(feats.points))
+            atomic_write_bytes(names["feats"], _npy_bytes(feats.feats))
+            write_json(
+                names["meta"],
+                {
+                    "source": str(cloud),
+                    "num_points": int(feats.points.shape[0]),
+                    "feature_dim": int(feats.feats.shape[1]),
+                    "voxel_size_m": feats.voxel_size,
+                    "scale": feats.scale,
+                    "method": feats.features,
+                    "weights_sha256": feats.weights_sha256,
+                },
+            )
+        else:
+            atomic_write_bytes(output, _npz_bytes(feats))
+    log.info(
+        "%s: %d points, %d-d %s features at %g m",
+        cloud,
+        feats.points.shape[0],
+        feats.feats.shape[1],
+        feats.features,
+        feats.voxel_size,
+    )

@@ -1,0 +1,94 @@
+"""Pair-list files of ``byoc register-batch``: ``source target [output]`` a line.
+
+Blank lines and ``#`` comments (whole lines, or the rest of a line) are ignored; columns are
+separated by whitespace; relative paths are relative to the list file's folder.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+from byoc_cli.errors import InputError
+
+__all__ = ["PairEntry", "default_output_name", "read_pair_list", "shard"]
+
+
+class PairEntry(NamedTuple):
+    """One pair of a list.
+
+    Attributes:
+        index: position among the list's pairs (0-based; comments and blank lines not counted).
+        line: line number in the file (1-based), for messages.
+        source, target: the clouds, resolved against the list's folder.
+        output: the T file of the third column (resolved the same way), or None.
+    """
+
+    index: int
+    line: int
+    source: Path
+    target: Path
+    output: Path | None
+
+
+def _resolve(folder: Path, text: str) -> Path:
+    path = Path(os.path.expanduser(text))
+    return path if path.is_absolute() else folder / path
+
+
+def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
+    """Read a pair list.
+
+    Raises:
+        InputError: naming the file (and the line): unreadable, not UTF-8 text, a line with
+            fewer than 2 or more than 3 columns, or no pair at all.
+    """
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            path, "is not a UTF-8 text file of 'source target [output]' lines"
+        ) from exc
+    except IsADirectoryError as exc:
+        raise InputError(path, "is a folder, not a pair list") from exc
+    except OSError as exc:
+        raise InputError(path, exc.strerror or str(exc)) from exc
+    folder = path.parent
+    pairs: list[PairEntry] = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        columns = raw.split("#", 1)[0].split()
+        if not columns:
+            continue
+        if len(columns) not in (2, 3):
+            raise InputError(
+                path,
+                f"line {number}: expected 'source target [output]', got {len(columns)} column(s)",
+            )
+        output = _resolve(folder, columns[2]) if len(columns) == 3 else None
+        pairs.append(
+            PairEntry(
+                len(pairs),
+                number,
+                _resolve(folder, columns[0]),
+                _resolve(folder, columns[1]),
+                output,
+            )
+        )
+    if not pairs:
+        raise InputError(path, "holds no pair (lines of 'source target [output]')")
+    return pairs
+
+
+def default_output_name(source: Path, target: Path) -> str:
+    """``<source-stem>__<target-stem>.txt``: a pair's T file when the list names none."""
+    return f"{source.stem}__{target.stem}.txt"
+
+
+def shard(pairs: list[PairEntry], index: int, count: int) -> list[PairEntry]:
+    """Every ``count``-th pair starting at ``index`` (0 <= index < count): the shards of one
+    list are disjoint and together hold every pair."""
+    if not 0 <= index < count:
+        raise ValueError(f"shard index must be in [0, {count}), got {index}")
+    return pairs[index::count]

@@ -1,0 +1,41 @@
+"""Pair lists of register-batch: columns, comments, relative paths, shards."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from byoc_cli.errors import InputError
+from byoc_cli.io.pairlist import PairEntry, default_output_name, read_pair_list, shard
+
+
+def test_columns_comments_and_relative_paths(tmp_path: Path):
+    listing = tmp_path / "sub" / "pairs.txt"
+    listing.parent.mkdir()
+    listing.write_text("# header\n\na.ply  b.ply\n/abs/c.ply d.ply out/T.txt  # note\n")
+    pairs = read_pair_list(listing)
+    assert pairs == [
+        PairEntry(0, 3, listing.parent / "a.ply", listing.parent / "b.ply", None),
+        PairEntry(1, 4, Path("/abs/c.ply"), listing.parent / "d.ply", listing.parent / "out/T.txt"),
+    ]
+    assert default_output_name(Path("x/a.ply"), Path("b.npy")) == "a__b.txt"
+
+
+@pytest.mark.parametrize("text", ["a\n", "a b c d\n", "# only\n", ""])
+def test_malformed_lists_name_the_file(tmp_path: Path, text: str):
+    listing = tmp_path / "p.txt"
+    listing.write_text(text)
+    with pytest.raises(InputError, match=r"p\.txt"):
+        read_pair_list(listing)
+
+
+@given(st.integers(1, 40), st.integers(1, 7))
+def test_shards_partition_the_list(n: int, count: int):
+    pairs = [PairEntry(k, k + 1, Path(f"{k}a"), Path(f"{k}b"), None) for k in range(n)]
+    parts = [shard(pairs, i, count) for i in range(count)]
+    assert sorted(p.index for part in parts for p in part) == list(range(n))
+    with pytest.raises(ValueError):
+        shard(pairs, count, count)

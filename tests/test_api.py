@@ -1,0 +1,124 @@
+"""The Python API (byoc_cli.api): lazy import, typed results, the CLI's results."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import byoc_cli
+from byoc_cli.cli.main import cli
+from byoc_cli.errors import InputError, RegistrationError, ShapeError
+from byoc_cli.io import format_transform, read_transform, write_ply
+from byoc_cli.pipeline import default_weights
+
+
+def _cube(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    n = 4000
+    pts = rng.uniform(-1, 1, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    pts[np.arange(n), axis] = np.sign(pts[np.arange(n), axis])
+    return pts * np.array([1.5, 1.0, 0.8])
+
+
+def _moved(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c, s = np.cos(0.2), np.sin(0.2)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [0.2, -0.1, 0.05]
+    return pts @ T[:3, :3].T + T[:3, 3], T
+
+
+def test_importing_byoc_cli_imports_neither_torch_nor_open3d():
+    code = (
+        "import sys, byoc_cli; from byoc_cli import register, extract_features, Registrar; "
+        "print('torch' in sys.modules, 'open3d' in sys.modules, 'click' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False", "False"]
+
+
+def test_api_names_are_exported():
+    assert set(byoc_cli.__all__) >= {"register", "extract_features", "load_weights", "Features"}
+    with pytest.raises(AttributeError):
+        byoc_cli.no_such_name  # noqa: B018
+
+
+def test_register_arrays_gives_the_cli_transform(tmp_path):
+    src = _cube()
+    tgt, _ = _moved(src)
+    result = byoc_cli.register(src, tgt, seed=5, max_points=2000)
+    assert isinstance(result, byoc_cli.Registration)
+    assert result.T_tgt_src.shape == (4, 4) and result.T_tgt_src.dtype == np.float64
+    assert 0.0 <= result.confidence <= 1.0 and result.features == "byoc"
+    assert result.weights_sha256 == default_weights.verify_default_weights()
+    write_ply(tmp_path / "s.ply", src)
+    write_ply(tmp_path / "t.ply", tgt)
+    out = tmp_path / "T.txt"
+    args = ["register", str(tmp_path / "s.ply"), str(tmp_path / "t.ply"), "-o", str(out)]
+    res = CliRunner().invoke(cli, [*args, "--seed", "5", "--max-points", "2000"])
+    assert res.exit_code == 0, res.output
+    # the PLY stores float32: compare against the API on the same file
+    from_files = byoc_cli.register(tmp_path / "s.ply", tmp_path / "t.ply", seed=5, max_points=2000)
+    assert out.read_text() == format_transform(from_files.T_tgt_src)
+    assert np.allclose(read_transform(out), from_files.T_tgt_src)
+
+
+def test_fpfh_registration_recovers_a_known_motion():
+    src = _cube(1)
+    tgt, T = _moved(src)
+    result = byoc_cli.register(src, tgt, features="fpfh", seed=0)
+    assert result.estimator == "ransac" and result.refine == "none"
+    assert np.abs(result.T_tgt_src - T).max() < 0.05
+    assert result.timings.keys() >= {"load", "features_src", "features_tgt", "total"}
+
+
+def test_scale_keeps_the_input_units():
+    src_mm = _cube(1) * 1000
+    tgt_mm, T = _moved(_cube(1))
+    tgt_mm = tgt_mm * 1000
+    with pytest.raises(InputError, match="millimetres"):
+        byoc_cli.register(src_mm, tgt_mm, features="fpfh")
+    result = byoc_cli.register(src_mm, tgt_mm, features="fpfh", scale=0.001)
+    assert np.abs(result.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm
+
+
+def test_extract_features_and_registrar_reuse():
+    registrar = byoc_cli.Registrar()
+    feats = registrar.extract(_cube())
+    assert isinstance(feats, byoc_cli.Features)
+    m = feats.points.shape[0]
+    assert feats.feats.shape[0] == m and feats.feats.dtype == np.float32
+    assert np.allclose(np.linalg.norm(feats.feats, axis=1), 1.0, atol=1e-5)
+    assert np.array_equal(_cube()[feats.point_index], feats.points)
+    assert feats.voxel_size == registrar.voxel_size and feats.scale == 1.0
+    same = byoc_cli.extract_features(_cube(), weights=byoc_cli.load_weights())
+    assert np.array_equal(same.feats, feats.feats)
+    other = byoc_cli.Registrar("fpfh").extract(_cube())
+    with pytest.raises(ValueError, match="same features"):
+        registrar.match(feats, other)
+
+
+@pytest.mark.parametrize(
+    ("points", "error"),
+    [
+        (np.zeros((10, 2)), ShapeError),
+        (np.full((10, 3), np.nan), ShapeError),
+        (np.zeros((10, 3)), RegistrationError),
+    ],
+)
+def test_bad_arrays_raise_typed_errors(points, error):
+    with pytest.raises(error):
+        byoc_cli.extract_features(points, features="fpfh")
+
+
+def test_missing_file_is_an_input_error(tmp_path: Path):
+    with pytest.raises(InputError, match=r"none\.ply"):
+        byoc_cli.load_cloud(tmp_path / "none.ply")
+    with pytest.raises(ValueError, match="features must be"):
+        byoc_cli.Registrar("nope")
