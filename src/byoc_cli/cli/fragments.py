@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from byoc_cli.cli.errors import CliError, handle_errors
+from byoc_cli.cli.options import POSITIVE, finite_float
 
 _PATH = click.Path(path_type=Path)
 
@@ -71,28 +72,28 @@ def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float |
 )
 @click.option(
     "--tsdf-voxel",
-    type=click.FloatRange(min=0, min_open=True),
+    type=POSITIVE,
     default=0.006,
     show_default=True,
     help="TSDF voxel in metres (3DMatch: 6 mm).",
 )
 @click.option(
     "--sdf-trunc",
-    type=click.FloatRange(min=0, min_open=True),
+    type=POSITIVE,
     default=0.04,
     show_default=True,
     help="TSDF truncation distance in metres.",
 )
 @click.option(
     "--depth-trunc",
-    type=click.FloatRange(min=0, min_open=True),
+    type=POSITIVE,
     default=3.0,
     show_default=True,
     help="Ignore depth beyond this, metres.",
 )
 @click.option(
     "--min-overlap",
-    type=click.FloatRange(0, 1, max_open=True),
+    type=finite_float(0, 1, max_open=True),
     default=0.3,
     show_default=True,
     help="gt.log keeps the pairs whose overlap is above this.",
@@ -105,7 +106,7 @@ def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float |
 )
 @click.option(
     "--depth-scale",
-    type=click.FloatRange(min=0, min_open=True),
+    type=POSITIVE,
     default=None,
     help="Depth units per metre [default: the layout's convention].",
 )
