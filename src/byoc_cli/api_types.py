@@ -1,0 +1,163 @@
+"""Result types and input loaders of the Python API (:mod:`byoc_cli.api`)."""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from byoc_cli.pipeline.weights import LoadedWeights
+
+#: inputs read as depth images (they need intrinsics)
+DEPTH_EXTENSIONS = (".png", ".tif", ".tiff")
+
+
+class Features(NamedTuple):
+    """Per-point features of one cloud (what ``byoc features`` writes).
+
+    Attributes:
+        points: ``(M, 3)`` float64 kept points in metres (input coordinates times ``scale``;
+            the first input point of each occupied voxel).
+        feats: ``(M, C)`` float32 L2-normalised features; ``feats[m]`` describes ``points[m]``.
+        point_index: ``(M,)`` int64; ``points[m]`` is input point ``point_index[m]``.
+        voxel_size: the voxel size in metres.
+        scale: the factor the input coordinates were multiplied by (1.0 = metres already).
+        features: ``"byoc"`` or ``"fpfh"``.
+        weights_sha256: SHA-256 of the weights file (None for fpfh).
+    """
+
+    points: np.ndarray
+    feats: np.ndarray
+    point_index: np.ndarray
+    voxel_size: float
+    scale: float
+    features: str
+    weights_sha256: str | None
+
+
+class Registration(NamedTuple):
+    """The result of :func:`register`.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64, maps source points into the target frame
+            (``x_tgt = R x_src + t``, column vectors), in the units of the input.
+        confidence: ratio-weighted inlier share in [0, 1] (0 when fewer than 3 inliers).
+        num_inliers, num_correspondences, inlier_ratio: the verified correspondences.
+        overlap: share of the kept source points that land next to a kept target point.
+        num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
+        inlier_threshold: in metres.
+        voxel_size: in metres.
+        features, estimator, refine: what ran (``refine`` is ``"none"`` or ``"icp"``).
+        max_points, num_correspondences_per_direction, seed: the matching settings.
+        weights_sha256: SHA-256 of the weights file (None for fpfh).
+        timings: seconds per stage (``features_src``, ``features_tgt``, ``match``, ``fit``,
+            ``verify``, ``total``; a stage that was cached reads 0).
+    """
+
+    T_tgt_src: np.ndarray
+    confidence: float
+    num_inliers: int
+    num_correspondences: int
+    inlier_ratio: float
+    overlap: float
+    num_points_src: int
+    num_points_tgt: int
+    inlier_threshold: float
+    voxel_size: float
+    features: str
+    estimator: str
+    refine: str
+    max_points: int
+    num_correspondences_per_direction: int
+    seed: int
+    weights_sha256: str | None
+    timings: dict[str, float]
+
+
+def load_weights(path: str | os.PathLike[str] | None = None) -> LoadedWeights:
+    """Load a weights file (weights-spec/ format); None loads the shipped default weights.
+
+    Returns:
+        a ``LoadedWeights`` (``encoder``, ``metadata``, ``file_sha256``, ``path``) that
+        :func:`register`, :func:`extract_features` and :class:`Registrar` take as ``weights``.
+
+    Raises:
+        WeightsError: the file is missing or invalid, or (None) nothing ships or the shipped
+            file does not match its checksum.
+    """
+    if path is None:
+        from byoc_cli.pipeline.default_weights import load_default_weights
+
+        return load_default_weights()
+    from byoc_cli.pipeline.weights import load_weights as _load
+
+    return _load(path)
+
+
+def load_cloud(
+    path: str | os.PathLike[str],
+    *,
+    intrinsics: str | os.PathLike[str] | None = None,
+    depth_scale: float = 1000.0,
+    scale: float | None = None,
+) -> np.ndarray:
+    """Read a point cloud (.ply, .pcd, .xyz, .pts, .npy) or a depth image as ``(N, 3)`` metres.
+
+    Points with NaN/Inf coordinates are dropped (with a warning).
+
+    Args:
+        path: the file.
+        intrinsics: for depth images (.png, .tif): Open3D intrinsics JSON or a 3x3 text matrix.
+        depth_scale: depth-image units per metre.
+        scale: multiply the coordinates by this (0.001 for millimetres); None checks that the
+            cloud looks like metres.
+
+    Returns:
+        ``(N, 3)`` float64 (times ``scale`` when given).
+
+    Raises:
+        InputError: unreadable or malformed file, a depth image without intrinsics, or (no
+            ``scale``) a cloud that looks like millimetres.
+    """
+    from byoc_cli.errors import InputError
+    from byoc_cli.io import check_units, read_depth_cloud, read_point_cloud
+
+    path = Path(path)
+    if path.suffix.lower() in DEPTH_EXTENSIONS:
+        if intrinsics is None:
+            raise InputError(path, "is a depth image: intrinsics are required (--intrinsics)")
+        loaded = read_depth_cloud(path, Path(intrinsics), depth_scale=depth_scale)
+    else:
+        loaded = read_point_cloud(path)
+    if loaded.num_nonfinite_dropped:
+        warnings.warn(
+            f"{path}: dropped {loaded.num_nonfinite_dropped} point(s) with NaN/Inf coordinates",
+            stacklevel=2,
+        )
+    points = loaded.points
+    if scale is None:
+        check_units(points, path)
+        return points
+    return points * scale
+
+
+def _as_points(cloud: Any, label: str, scale: float | None, **load: Any) -> tuple[np.ndarray, str]:
+    """A path is read with :func:`load_cloud`; an array is checked and scaled the same way."""
+    if isinstance(cloud, (str, os.PathLike)):
+        return load_cloud(cloud, scale=scale, **load), str(cloud)
+    from byoc_cli.errors import ShapeError
+    from byoc_cli.io import check_units
+
+    points = np.asarray(cloud, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
+        raise ShapeError(f"{label}: points must be (N, 3) with N >= 1, got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ShapeError(f"{label}: points must be finite")
+    if scale is None:
+        check_units(points, label)
+        return points, label
+    return points * scale, label
