@@ -108,14 +108,32 @@ def export_weights(
     metrics: dict[str, float],
 ) -> str:
     """Write the geometric encoder as a weights file; returns its SHA-256."""
+    return write_encoder(_geometric_for_export(model, config), config, path, data, steps, metrics)
+
+
+def write_encoder(
+    encoder: torch.nn.Module,
+    config: TrainConfig,
+    path: Path,
+    data: list[str],
+    steps: int,
+    metrics: dict[str, float],
+    *,
+    recipe: dict[str, Any] | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> str:
+    """Write ``encoder`` (a CPU copy in eval mode) with the run's metadata; returns the SHA-256.
+
+    Non-finite metrics are left out; ``recipe`` is recorded under ``training.recipe``.
+    """
     import copy
 
     from byoc_cli.pipeline.weights import build_metadata, save_weights
 
-    encoder = copy.deepcopy(_geometric_for_export(model, config)).cpu().eval()
+    model = copy.deepcopy(encoder).cpu().eval()
     clean = {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
     meta = build_metadata(
-        encoder,
+        model,
         voxel_size=config.voxel_size,
         variant=config.variant,
         data=data,
@@ -123,4 +141,6 @@ def export_weights(
         seed=config.seed,
         metrics=clean,
     )
-    return save_weights(path, encoder, meta)
+    if recipe is not None:
+        meta["training"]["recipe"] = recipe
+    return save_weights(path, model, meta, dtype=dtype)

@@ -88,23 +88,9 @@ def export_encoder(
     dtype: torch.dtype = torch.float32,
 ) -> str:
     """Write the encoder as a weights file (variant ``self-posed``); returns its SHA-256."""
-    import copy
-    import math
+    from byoc_cli.training.run_folder import write_encoder
 
-    from byoc_cli.pipeline.weights import build_metadata, save_weights
-
-    model = copy.deepcopy(encoder).cpu().eval()
-    clean = {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
-    meta = build_metadata(
-        model,
-        voxel_size=config.voxel_size,
-        variant=config.variant,
-        data=data,
-        steps=steps,
-        seed=config.seed,
-        metrics=clean,
-    )
-    meta["training"]["recipe"] = {
+    recipe = {
         k: config.to_dict()[k]
         for k in (
             "lr",
@@ -115,9 +101,10 @@ def export_encoder(
             "aug_scale",
             "aug_min_keep",
             "pair_gaps",
+            "crop_radius",
         )
     }
-    return save_weights(path, model, meta, dtype=dtype)
+    return write_encoder(encoder, config, path, data, steps, metrics, recipe=recipe, dtype=dtype)
 
 
 def export_checkpoint(
