@@ -90,3 +90,14 @@ def test_without_shipped_weights_byoc_needs_weights(runner, shared_data, tmp_pat
         cli, ["eval-pairs", "--rgbd-dir", str(seq), "--spacing", "2", "--method", "byoc"]
     )
     assert res.exit_code == 2 and "byoc-random" in res.stderr
+
+
+def test_the_package_data_installs_the_weights_and_their_checksum():
+    import tomllib
+    from pathlib import Path
+
+    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+    data = tomllib.loads(pyproject.read_text())["tool"]["setuptools"]["package-data"]["byoc_cli"]
+    root = Path(default_weights.__file__).resolve().parents[1]
+    for path in (default_weights.DEFAULT_WEIGHTS, default_weights.DEFAULT_CHECKSUM):
+        assert str(path.relative_to(root)) in data
