@@ -93,6 +93,8 @@ def _fail_rename_of(name: str):
 
 
 REG = ["register", "s.ply", "t.ply", "--features", "fpfh"]
+SCANS = ["register-scans", "s.ply", "t.ply", "--out", "scans", "--features", "fpfh"]
+ODOMETRY = ["odometry", "--features", "fpfh", "--rgbd-dir"]
 OUTS = ["-o", "T.txt", "--json", "report.json", "--aligned", "aligned.ply"]
 EVAL_PAIRS = ["eval-pairs", "--pairs-dir", "pairs", "--method", "identity", "--quiet"]
 FAILING_RUNS = {
@@ -133,9 +135,16 @@ FAILING_RUNS = {
     ],
     "eval-pairs over its input": [*EVAL_PAIRS, "--json", "pairs/0000/T_gt.txt"],
     "eval-pairs commit fails": [*EVAL_PAIRS, "--json", "report.json", "--plot", "plot.png"],
+    "register-scans over its input": [*SCANS, "--merged", "s.ply"],
+    "register-scans a bad cloud": ["register-scans", "s.ply", "bad.ply", "--out", "scans"],
+    "register-scans into the user's folder": [*SCANS[:3], "--out", "mine"],
+    "register-scans commit fails": [*SCANS, "--merged", "aligned.ply"],
+    "odometry of a folder without a sequence": [*ODOMETRY, "pairs", "-o", "T.txt"],
+    "odometry into a folder": [*ODOMETRY, "pairs", "-o", "mine", "--json", "report.json"],
 }
 #: runs that succeed up to the end and then fail to put this file in place
 COMMIT_FAILS = {
+    "register-scans commit fails": "aligned.ply",
     "register commit fails": "T.txt",
     "weights init commit fails": "w.safetensors",
     "eval-pairs commit fails": "report.json",
@@ -156,6 +165,7 @@ def test_a_failed_run_changes_no_file(work, case, monkeypatch):
     ]
     assert len(errors) == 1, result.stderr
     after = _snapshot(work)
+    assert not (work / "scans").exists()  # register-scans removes the folders it made
     changed = sorted(k for k in before if before[k] != after.get(k))
     added = sorted(set(after) - set(before))
     assert not changed and not added, (changed, added)
@@ -164,5 +174,8 @@ def test_a_failed_run_changes_no_file(work, case, monkeypatch):
 
 def test_every_command_is_exercised():
     commands = {run[0] for run in FAILING_RUNS.values()}
-    assert commands == {"register", "weights", "train", "eval-fmr", "eval-pairs"}
+    assert commands == {
+        *("register", "weights", "train", "eval-fmr", "eval-pairs"),
+        *("register-scans", "odometry"),
+    }
     assert {run[1] for run in FAILING_RUNS.values() if run[0] == "weights"} == {"info", "init"}

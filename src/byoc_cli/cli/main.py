@@ -19,6 +19,8 @@ _COMMANDS = {
     "eval-fmr": ("byoc_cli.cli.evaluate", "eval_fmr"),
     "eval-pairs": ("byoc_cli.cli.evaluate", "eval_pairs"),
     "make-fragments": ("byoc_cli.cli.fragments", "make_fragments"),
+    "register-scans": ("byoc_cli.cli.scans", "register_scans"),
+    "odometry": ("byoc_cli.cli.odometry", "odometry"),
 }
 
 

@@ -9,6 +9,7 @@ pose graph holds ``T_world_node`` per node; an edge ``(s, t)`` carries ``T_t_s``
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -20,6 +21,18 @@ NORMAL_MAX_NN = 30
 #: ICP scales as multiples of the fine voxel: (voxel factor, correspondence distance factor)
 ICP_SCALES = ((4.0, 6.0), (2.0, 3.0), (1.0, 1.5))
 ICP_ITERATIONS = (30, 30, 30)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of the rotation ``R (3, 3)`` in degrees."""
+    cos = (np.trace(R) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+
+
+def transform_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Rotation (deg) and translation (m) of ``inv(T_a) @ T_b``."""
+    delta = np.linalg.inv(T_a) @ T_b
+    return rotation_angle_deg(delta[:3, :3]), float(np.linalg.norm(delta[:3, 3]))
 
 
 class PreparedCloud(NamedTuple):
@@ -58,6 +71,16 @@ def prepare_cloud(points: np.ndarray, voxel_size: float) -> PreparedCloud:
         )
         levels.append(cloud)
     return PreparedCloud(levels, float(voxel_size))
+
+
+#: fewest points per level for ICP (normals, point-to-plane) to be meaningful
+MIN_ICP_POINTS = 10
+
+
+def enough_points(cloud: PreparedCloud, min_points: int = MIN_ICP_POINTS) -> bool:
+    """True when every level of ``cloud`` has at least ``min_points`` points (Open3D's ICP
+    fails on an empty target and means nothing on a handful of points)."""
+    return all(len(level.points) >= min_points for level in cloud.levels)
 
 
 def multiscale_icp(src: PreparedCloud, tgt: PreparedCloud, T_init: np.ndarray) -> PairEstimate:

@@ -28,8 +28,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from byoc_cli.pipeline import odometry, posegraph
+
 #: frame points farther than this from the camera are dropped (Kinect noise grows with z^2)
-DEFAULT_MAX_DEPTH = 4.0
+DEFAULT_MAX_DEPTH = odometry.DEFAULT_MAX_DEPTH
 
 
 @dataclass(frozen=True)
@@ -108,28 +110,10 @@ class SequencePairs(NamedTuple):
     stats: dict[str, int]
 
 
-def frame_points(sequence: Any, index: int, max_depth: float = DEFAULT_MAX_DEPTH) -> np.ndarray:
-    """Back-project frame ``index`` of ``sequence`` at full resolution: ``(N, 3)`` float32.
-
-    Reads only the depth image and the intrinsics (never a pose).
-    """
-    from byoc_cli.io.rgbd import backproject
-
-    depth = sequence.read_depth(index)
-    depth = np.where(depth <= max_depth, depth, 0.0).astype(np.float32)
-    return np.asarray(backproject(depth, sequence.K).points, dtype=np.float32)
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of the rotation ``R (3, 3)`` in degrees."""
-    cos = (np.trace(R) - 1.0) / 2.0
-    return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
-
-
-def transform_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    """Rotation (deg) and translation (m) of ``inv(T_a) @ T_b``."""
-    delta = np.linalg.inv(T_a) @ T_b
-    return rotation_angle_deg(delta[:3, :3]), float(np.linalg.norm(delta[:3, 3]))
+# shared with byoc odometry and register-scans (re-exported here for the training code)
+frame_points = odometry.frame_points
+rotation_angle_deg = posegraph.rotation_angle_deg
+transform_difference = posegraph.transform_difference
 
 
 def _fits(est: Any, min_fitness: float, max_rmse: float) -> bool:

@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from byoc_cli.errors import DatasetError
+from byoc_cli.errors import DatasetError, ShapeError
 from byoc_cli.io.rgbd.files import names_up_to, read_K, read_text
 from byoc_cli.io.rgbd.frames import RGBDFrame, SkippedFrame
 from byoc_cli.io.rgbd.layout import Layout, ScanOptions
+from byoc_cli.io.trajectory import quaternion_to_matrix
 
 #: Published TUM RGB-D intrinsics ``(fx, fy, cx, cy)`` per Kinect (freiburg1/2/3).
 TUM_INTRINSICS = {
@@ -98,17 +99,14 @@ def _nearest(stamps: np.ndarray, t: float, tolerance: float) -> int | None:
 def _quaternion_pose(values: list[float]) -> np.ndarray | None:
     """``tx ty tz qx qy qz qw`` -> 4x4 ``T_world_cam``, or None when invalid."""
     t = np.array(values[:3], dtype=np.float64)
-    q = np.array(values[3:7], dtype=np.float64)
-    norm = float(np.linalg.norm(q))
-    if not (np.all(np.isfinite(t)) and np.isfinite(norm) and norm > 1e-6):
+    if not np.all(np.isfinite(t)):
         return None
-    x, y, z, w = q / norm
+    try:
+        R = quaternion_to_matrix(np.array(values[3:7], dtype=np.float64))
+    except ShapeError:
+        return None
     T = np.eye(4)
-    T[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
+    T[:3, :3] = R
     T[:3, 3] = t
     return T
 

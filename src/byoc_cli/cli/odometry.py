@@ -1,0 +1,295 @@
+"""``byoc odometry --rgbd-dir SEQ -o traj.txt``: the camera trajectory of an RGB-D video."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import click
+
+from byoc_cli.cli.display import print_table
+from byoc_cli.cli.errors import CliError, handle_errors
+from byoc_cli.cli.options import (
+    apply,
+    device_option,
+    features_option,
+    finite_float,
+    float_option,
+    int_option,
+    path_option,
+    resolve_device,
+    seed_option,
+    voxel_size_option,
+    weights_option,
+)
+from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
+from byoc_cli.cli.scans import StageProgress, pairwise_setup
+
+log = logging.getLogger("byoc")
+
+
+def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float | None):
+    from byoc_cli.io.rgbd import discover_sequences
+
+    sequences = discover_sequences(rgbd_dir, intrinsics=intrinsics, depth_scale=depth_scale)
+    if len(sequences) > 1:
+        names = ", ".join(s.name for s in sequences[:3])
+        raise CliError(
+            f"{rgbd_dir}: holds {len(sequences)} RGB-D sequences ({names}, ...); "
+            "pass the folder of one"
+        )
+    return sequences[0]
+
+
+def _global_start(extractor, register_config):
+    """``T_tgt_src`` of two frames by the pairwise registration of ``byoc register``."""
+    import torch
+
+    from byoc_cli.pipeline.register import register_clouds
+
+    def start(points_src, points_tgt):
+        result = register_clouds(
+            torch.from_numpy(points_src), torch.from_numpy(points_tgt), extractor, register_config
+        )
+        return result.T_tgt_src.numpy()
+
+    return start
+
+
+def evaluate(sequence, trajectory) -> dict:
+    """ATE and RPE (per second when the frames have timestamps, and per frame) against the
+    sequence's poses, over the frames that have one.
+
+    Raises:
+        CliError: fewer than 2 used frames have a ground-truth pose.
+    """
+    import numpy as np
+
+    from byoc_cli.evaluation.trajectory import absolute_trajectory_error, relative_pose_error
+
+    frames = [sequence.frames[f] for f in trajectory.frames]
+    with_gt = [n for n, frame in enumerate(frames) if frame.pose is not None]
+    if len(with_gt) < 2:
+        raise CliError(
+            f"{sequence.root}: --eval needs ground-truth poses; {len(with_gt)} of the "
+            f"{len(frames)} frames used have one"
+        )
+    est = trajectory.poses[with_gt]
+    gt = np.stack([frames[n].pose for n in with_gt])
+    ate = absolute_trajectory_error(est, gt)
+    report = {
+        "num_frames": len(with_gt),
+        "ate_m": {"rmse": ate.rmse, "mean": ate.mean, "median": ate.median, "max": ate.max},
+        "rpe": {},
+    }
+    stamps = [frames[n].timestamp for n in with_gt]
+    deltas = [("per_frame", None)]
+    if all(s is not None for s in stamps):
+        deltas.insert(0, ("per_second", np.asarray(stamps)))
+    for name, stamp_array in deltas:
+        rpe = relative_pose_error(est, gt, stamp_array, 1.0)
+        report["rpe"][name] = {
+            "translation_rmse_m": rpe.translation_rmse,
+            "rotation_rmse_deg": rpe.rotation_rmse_deg,
+            "translation_mean_m": rpe.translation_mean,
+            "rotation_mean_deg": rpe.rotation_mean_deg,
+            "num_pairs": rpe.num_pairs,
+        }
+    return report
+
+
+def _print_eval(report: dict, name: str) -> None:
+    ate = report["ate_m"]
+    rows = [["ATE RMSE (m)", f"{ate['rmse']:.4f}"], ["ATE median (m)", f"{ate['median']:.4f}"]]
+    for key, label in (("per_second", "per second"), ("per_frame", "per frame")):
+        if key in report["rpe"]:
+            rpe = report["rpe"][key]
+            rows.append([f"RPE {label}: translation RMSE (m)", f"{rpe['translation_rmse_m']:.4f}"])
+            rows.append([f"RPE {label}: rotation RMSE (deg)", f"{rpe['rotation_rmse_deg']:.3f}"])
+    print_table(
+        f"trajectory error: {name}",
+        ["metric", "value"],
+        rows,
+        [f"{report['num_frames']} frames with ground truth; TUM RGB-D definitions"],
+    )
+
+
+@click.command(
+    "odometry",
+    epilog="Exit codes: 0 written; 1 bad input (unreadable frame, --eval without ground "
+    "truth) or runtime error; 2 usage error. Lost frames (no start fitted) keep the "
+    "constant-velocity prediction and are listed in --json.",
+)
+@click.option(
+    "--rgbd-dir",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="One RGB-D sequence (TUM, 3DMatch/7-Scenes, ScanNet, Redwood layouts); depth is enough.",
+)
+@apply(
+    path_option(
+        "-o",
+        "--output",
+        dash=True,
+        default=Path("-"),
+        show_default=True,
+        help="The trajectory, TUM format (timestamp tx ty tz qx qy qz qw; the frame number "
+        "when the layout has no timestamps); '-' is stdout.",
+    ),
+    path_option(
+        "--json",
+        "json_path",
+        dash=True,
+        default=None,
+        help="Write a JSON report (stats, timings, --eval figures); '-' is stdout.",
+    ),
+    click.option(
+        "--eval",
+        "do_eval",
+        is_flag=True,
+        help="Compare with the sequence's ground truth: ATE and RPE (TUM) on stderr.",
+    ),
+    features_option,
+    weights_option,
+    voxel_size_option,
+    float_option(
+        "--icp-voxel", default=0.025, help="Finest ICP voxel, metres (ICP at 4x, 2x, 1x)."
+    ),
+    float_option("--max-depth", default=4.0, help="Drop depth beyond this, metres."),
+    int_option("--frame-stride", min=1, default=1, help="Use every N-th frame."),
+    int_option("--max-frames", default=0, help="Use at most this many frames (0 = all)."),
+    float_option(
+        "--keyframe-rotation",
+        default=10.0,
+        help="New keyframe past this rotation from the current one, degrees.",
+    ),
+    float_option(
+        "--keyframe-translation",
+        default=0.1,
+        help="New keyframe past this translation from the current one, metres.",
+    ),
+    float_option(
+        "--min-fitness",
+        type=finite_float(0, 1),
+        default=0.6,
+        help="ICP is accepted when this share of the frame lies on the keyframe.",
+    ),
+    click.option(
+        "--pose-graph",
+        is_flag=True,
+        help="Optimise a pose graph over the keyframes with loop edges (slower).",
+    ),
+    path_option("--intrinsics", help="Intrinsics file for a sequence that ships none."),
+    float_option("--depth-scale", help="Depth units per metre [default: the layout's]."),
+    seed_option,
+    device_option,
+    click.option("--quiet", is_flag=True, help="No progress bar."),
+)
+@handle_errors
+def odometry(
+    rgbd_dir: Path,
+    output: Path,
+    json_path: Path | None,
+    do_eval: bool,
+    features: str,
+    weights: Path | None,
+    voxel_size: float | None,
+    icp_voxel: float,
+    max_depth: float,
+    frame_stride: int,
+    max_frames: int,
+    keyframe_rotation: float,
+    keyframe_translation: float,
+    min_fitness: float,
+    pose_graph: bool,
+    intrinsics: Path | None,
+    depth_scale: float | None,
+    seed: int,
+    device: str,
+    quiet: bool,
+) -> None:
+    """Track the depth camera of one RGB-D sequence and write its trajectory (TUM format).
+
+    Each frame is registered onto the current keyframe by coarse-to-fine point-to-plane ICP
+    from the constant-velocity prediction (else the previous pose, else a global start with
+    --features); a new keyframe starts when the motion exceeds --keyframe-rotation or
+    --keyframe-translation. The first frame is the world.
+    """
+    from byoc_cli.io.trajectory import format_tum_trajectory
+    from byoc_cli.pipeline.odometry import OdometryConfig, config_dict, estimate_trajectory
+
+    started = time.perf_counter()
+    device = resolve_device(device)
+    output = _stdout_output(output, json_path)
+    outputs = claim_outputs(
+        {"-o": output, "--json": json_path}, inputs=(intrinsics, weights), input_dirs=(rgbd_dir,)
+    )
+    extractor, register_config, weights_info = pairwise_setup(
+        features, weights, voxel_size, device, seed
+    )
+    sequence = _load_sequence(rgbd_dir, intrinsics, depth_scale)
+    config = OdometryConfig(
+        voxel_size=icp_voxel,
+        max_depth=max_depth,
+        frame_stride=frame_stride,
+        max_frames=max_frames,
+        min_fitness=min_fitness,
+        keyframe_rotation_deg=keyframe_rotation,
+        keyframe_translation=keyframe_translation,
+        pose_graph=pose_graph,
+        seed=seed,
+    )
+    progress = StageProgress(quiet)
+    try:
+        trajectory = estimate_trajectory(
+            sequence,
+            config,
+            _global_start(extractor, register_config),
+            lambda done, total: progress("frames", done, total),
+        )
+    finally:
+        progress.close()
+    frames = [sequence.frames[f] for f in trajectory.frames]
+    stamps = [f.timestamp if f.timestamp is not None else f.index for f in frames]
+    text = format_tum_trajectory(stamps, trajectory.poses)
+    evaluation = evaluate(sequence, trajectory) if do_eval else None
+    seconds = time.perf_counter() - started
+    report = {
+        "command": "byoc odometry",
+        "sequence": str(sequence.root),
+        "layout": sequence.layout,
+        "num_frames": len(trajectory.frames),
+        "num_keyframes": len(trajectory.keyframes),
+        "lost_frames": [frames[n].index for n in trajectory.lost],
+        "stats": trajectory.stats,
+        "settings": {**config_dict(config), "features": extractor.name},
+        "weights": weights_info,
+        "evaluation": evaluation,
+        "timings_s": {**trajectory.timings, "command": seconds},
+        "frames_per_second": len(trajectory.frames) / seconds,
+    }
+    with outputs:  # every file is committed at the end of the block, or none
+        write_json(json_path, report)
+        if is_stdout(output):
+            write_stdout(text)
+        elif output is not None:
+            from byoc_cli.io import atomic_write_text
+
+            atomic_write_text(output, text)
+    if trajectory.lost:
+        log.warning("%d frame(s) lost (constant-velocity pose kept)", len(trajectory.lost))
+    log.info("%d frames, %d keyframes, %.1f s", len(frames), len(trajectory.keyframes), seconds)
+    if evaluation is not None:
+        _print_eval(evaluation, sequence.name)
+
+
+def _stdout_output(output: Path, json_path: Path | None) -> Path | None:
+    """``-o``: None when only ``--json -`` was asked for (the default ``-o -`` then yields)."""
+    from click.core import ParameterSource
+
+    if not (is_stdout(output) and is_stdout(json_path)):
+        return output
+    if click.get_current_context().get_parameter_source("output") is ParameterSource.DEFAULT:
+        return None
+    raise click.UsageError("-o and --json cannot both be stdout")

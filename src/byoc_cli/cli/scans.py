@@ -1,0 +1,388 @@
+"""``byoc register-scans SCANS... --out DIR``: many overlapping scans into one frame."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+from byoc_cli.cli.display import is_quiet, progress_bar
+from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
+from byoc_cli.cli.options import (
+    apply,
+    device_option,
+    features_option,
+    finite_float,
+    float_option,
+    int_option,
+    path_option,
+    resolve_device,
+    seed_option,
+    voxel_size_option,
+    weights_option,
+)
+from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
+
+log = logging.getLogger("byoc")
+
+#: what report.json says it is (a folder holding it is this command's own)
+REPORT_COMMAND = "byoc register-scans"
+
+
+def pairwise_setup(
+    features: str, weights: Path | None, voxel_size: float | None, device: str, seed: int
+) -> tuple[Any, Any, dict | None]:
+    """The extractor and settings of ``byoc register`` for ``features``.
+
+    Returns:
+        ``(extractor, RegisterConfig, weights_info | None)``.
+    """
+    from byoc_cli.cli.register import make_registrar
+    from byoc_cli.pipeline.register import FEATURE_DEFAULTS, RegisterConfig
+
+    registrar = make_registrar(features, weights, voxel_size, device)
+    defaults = FEATURE_DEFAULTS[features]
+    config = RegisterConfig(
+        num_correspondences=defaults["num_correspondences"],
+        max_points=defaults["max_points"],
+        estimator=defaults["estimator"],
+        seed=seed,
+    )
+    return registrar.extractor, config, registrar.weights_info
+
+
+class StageProgress:
+    """Progress bars on stderr per stage (only on a terminal and without -q)."""
+
+    def __init__(self, quiet: bool) -> None:
+        import sys
+
+        self.progress = progress_bar() if not is_quiet(quiet) and sys.stderr.isatty() else None
+        self.tasks: dict[str, Any] = {}
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if self.progress is None:
+            return
+        if stage not in self.tasks:
+            self.tasks[stage] = self.progress.add_task(stage, total=total)
+        self.progress.update(self.tasks[stage], completed=done)
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.__exit__(None, None, None)
+
+
+def _is_scans_folder(folder: Path) -> bool:
+    try:
+        report = json.loads((folder / "report.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(report, dict) and report.get("command") == REPORT_COMMAND
+
+
+def _load(path: Path, scale: float | None):
+    """One scan as ``(N, 3)`` float64 metres."""
+    from byoc_cli.io import check_units, read_point_cloud
+
+    loaded = read_point_cloud(path)
+    if loaded.num_nonfinite_dropped:
+        log.warning(
+            "%s: dropped %d point(s) with NaN/Inf coordinates", path, loaded.num_nonfinite_dropped
+        )
+    if scale is None:
+        check_units(loaded.points, path)
+        return loaded.points
+    return loaded.points * scale
+
+
+@contextlib.contextmanager
+def _new_folders(*folders: Path):
+    """Create the missing ``folders``; remove the ones created (when empty) if the block fails."""
+    created = []
+    try:
+        for folder in folders:
+            if not folder.exists():
+                folder.mkdir()
+                created.append(folder)
+        yield
+    except BaseException:
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+def _pair_json(pair, poses, scans: list[Path]) -> dict:
+    import numpy as np
+
+    from byoc_cli.pipeline.posegraph import transform_difference
+
+    record = {
+        "i": pair.i,
+        "j": pair.j,
+        "target": str(scans[pair.i]),
+        "source": str(scans[pair.j]),
+        "kind": pair.kind,
+        "status": pair.status,
+        "confidence": pair.confidence,
+        "fitness": pair.fitness,
+        "rmse_m": pair.rmse,
+        "edge": pair.edge or None,
+        "pruned": pair.pruned,
+        "seconds": pair.seconds,
+        "error": pair.error or None,
+        "T_i_j": None if pair.T_i_j is None else pair.T_i_j.tolist(),
+    }
+    if pair.T_i_j is not None and poses[pair.i] is not None and poses[pair.j] is not None:
+        graph = np.linalg.inv(poses[pair.i]) @ poses[pair.j]
+        rot, trans = transform_difference(graph, pair.T_i_j)
+        record["disagreement_with_poses"] = {"rotation_deg": rot, "translation_m": trans}
+    return record
+
+
+@click.command(
+    "register-scans",
+    epilog="Writes DIR/poses/<scan-stem>.txt (T_world_scan, the first scan is the world), "
+    "DIR/trajectory.log (3DMatch/Open3D .log) and DIR/report.json; --merged a PLY. Exit "
+    "codes: 0 every scan placed; 1 bad input or runtime error (nothing written); 2 usage "
+    "error; 3 some scans overlap no placed scan (the others are written, the report lists "
+    "them).",
+)
+@click.argument("scans", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Results folder (new, empty, or one this command wrote).",
+)
+@apply(
+    path_option("--merged", default=None, help="Write the merged model here (binary PLY)."),
+    float_option("--merged-voxel", default=0.01, help="Voxel size of the merged model, metres."),
+    features_option,
+    weights_option,
+    voxel_size_option,
+    float_option(
+        "--icp-voxel",
+        default=0.02,
+        help="Finest voxel of the multi-scale ICP refinement, metres (ICP at 4x, 2x, 1x).",
+    ),
+    float_option(
+        "--min-fitness",
+        type=finite_float(0, 1),
+        default=0.3,
+        help="A pair enters the pose graph when this share of its source lies on the target "
+        "after ICP.",
+    ),
+    int_option(
+        "--all-pairs-max",
+        min=2,
+        default=20,
+        help="Up to this many scans every pair is tried; above, neighbours in the given order "
+        "plus candidate pairs that overlap under a first pose graph.",
+    ),
+    int_option(
+        "--neighbours",
+        min=1,
+        default=2,
+        help="Large sets: each scan is paired with the next N scans.",
+    ),
+    float_option(
+        "--scale",
+        help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
+        "check. Poses and the merged model are written in the input units.",
+    ),
+    seed_option,
+    device_option,
+    click.option("--quiet", is_flag=True, help="No progress bars."),
+)
+@handle_errors
+def register_scans(
+    scans: tuple[Path, ...],
+    out: Path,
+    merged: Path | None,
+    merged_voxel: float,
+    features: str,
+    weights: Path | None,
+    voxel_size: float | None,
+    icp_voxel: float,
+    min_fitness: float,
+    all_pairs_max: int,
+    neighbours: int,
+    scale: float | None,
+    seed: int,
+    device: str,
+    quiet: bool,
+) -> None:
+    """Register overlapping SCANS (point clouds in metres) into the frame of the first one.
+
+    Every overlapping pair is registered with the pairwise registration of `byoc register`
+    (the same --features, --weights, --voxel-size) and refined by ICP; a pose graph of the
+    pairs, with their information matrices, is optimised with Open3D's global optimisation,
+    which prunes wrong pairs. A one-line summary goes to stdout.
+    """
+    started = time.perf_counter()
+    device = resolve_device(device)
+    scans_list = list(scans)
+    if len(scans_list) < 2:
+        raise click.UsageError("register-scans needs at least 2 scans")
+    stems: dict[str, Path] = {}
+    for path in scans_list:
+        if path.stem in stems:
+            raise click.BadParameter(
+                f"{stems[path.stem]} and {path} have the same name {path.stem!r} "
+                "(poses/<name>.txt); rename one",
+                param_hint="'SCANS'",
+            )
+        stems[path.stem] = path
+    from byoc_cli.io.outputs import check_run_folder
+
+    check_run_folder(out, _is_scans_folder, what="register-scans folder")
+    with _new_folders(out, out / "poses"):
+        _run(
+            scans_list,
+            out,
+            merged,
+            merged_voxel,
+            features,
+            weights,
+            voxel_size,
+            icp_voxel,
+            min_fitness,
+            all_pairs_max,
+            neighbours,
+            scale,
+            seed,
+            device,
+            quiet,
+            started,
+        )
+
+
+def _run(
+    scans,
+    out,
+    merged,
+    merged_voxel,
+    features,
+    weights,
+    voxel_size,
+    icp_voxel,
+    min_fitness,
+    all_pairs_max,
+    neighbours,
+    scale,
+    seed,
+    device,
+    quiet,
+    started,
+) -> None:
+    from byoc_cli import __version__
+    from byoc_cli.io import atomic_write_text, format_transform, write_ply
+    from byoc_cli.io.trajectory import format_trajectory_log
+    from byoc_cli.pipeline.scans import ScansConfig, config_dict, merge_clouds, register_scans
+
+    pose_paths = [out / "poses" / f"{path.stem}.txt" for path in scans]
+    outputs = claim_outputs(
+        {
+            "report": out / "report.json",
+            "trajectory": out / "trajectory.log",
+            "--merged": merged,
+            **{f"pose {k}": p for k, p in enumerate(pose_paths)},
+        },
+        inputs=(*scans, weights),
+    )
+    extractor, register_config, weights_info = pairwise_setup(
+        features, weights, voxel_size, device, seed
+    )
+    t0 = time.perf_counter()
+    points = [_load(path, scale) for path in scans]
+    load_time = time.perf_counter() - t0
+    config = ScansConfig(
+        all_pairs_max=all_pairs_max,
+        neighbours=neighbours,
+        icp_voxel=icp_voxel,
+        min_fitness=min_fitness,
+    )
+    progress = StageProgress(quiet)
+    try:
+        result = register_scans(
+            points, extractor, register_config, config, [str(p) for p in scans], progress
+        )
+    finally:
+        progress.close()
+    unit = 1.0 / (scale or 1.0)
+    poses = [None if T is None else _unscaled(T, unit) for T in result.poses]
+    placed = [k for k, T in enumerate(poses) if T is not None]
+    kept = [p for p in result.pairs if p.status == "kept"]
+    pruned = [p for p in result.pairs if p.pruned]
+    report = {
+        "command": REPORT_COMMAND,
+        "byoc_cli_version": __version__,
+        "convention": "poses/<scan>.txt is T_world_scan (x_world = R x_scan + t); world = "
+        "the first scan",
+        "scans": [
+            {
+                "path": str(p),
+                "pose": str(pose_paths[k]) if poses[k] is not None else None,
+                "num_points": len(points[k]),
+                "placed": poses[k] is not None,
+            }
+            for k, p in enumerate(scans)
+        ],
+        "num_scans": len(scans),
+        "num_placed": len(placed),
+        "unplaced": [str(scans[k]) for k in result.unplaced],
+        "pairs_tried": len(result.pairs),
+        "pairs_kept": len(kept),
+        "pairs_failed": sum(p.status == "failed" for p in result.pairs),
+        "edges_pruned": len(pruned),
+        "pairs": [_pair_json(p, result.poses, scans) for p in result.pairs],
+        "settings": {
+            "features": extractor.name,
+            "voxel_size_m": extractor.voxel_size,
+            "estimator": register_config.estimator,
+            "num_correspondences": register_config.num_correspondences,
+            "max_points": register_config.max_points,
+            "seed": seed,
+            "scale": scale,
+            "merged_voxel_m": merged_voxel if merged is not None else None,
+            **config_dict(config),
+        },
+        "weights": weights_info,
+        "timings_s": {"load": load_time, **result.timings},
+    }
+    merged_points = None
+    if merged is not None:
+        t0 = time.perf_counter()
+        merged_points = merge_clouds(points, result.poses, merged_voxel * (scale or 1.0)) * unit
+        report["timings_s"]["merge"] = time.perf_counter() - t0
+    report["timings_s"]["command"] = time.perf_counter() - started
+
+    with outputs:  # every file is committed at the end of the block, or none
+        for k in placed:
+            atomic_write_text(pose_paths[k], format_transform(poses[k]))
+        atomic_write_text(
+            out / "trajectory.log", format_trajectory_log([poses[k] for k in placed], placed)
+        )
+        if merged_points is not None:
+            write_ply(merged, merged_points)
+        write_json(out / "report.json", report)
+        write_stdout(
+            f"{out}: {len(placed)}/{len(scans)} scans placed, {len(kept)}/{len(result.pairs)} "
+            f"pairs kept, {len(pruned)} edges pruned, {time.perf_counter() - started:.1f} s\n"
+        )
+    if result.unplaced:
+        names = ", ".join(str(scans[k]) for k in result.unplaced[:5])
+        click.echo(f"byoc: {len(result.unplaced)} scan(s) not placed: {names}", err=True)
+        raise SystemExit(EXIT_LOW_CONFIDENCE)
+
+
+def _unscaled(T, unit: float):
+    T = T.copy()
+    T[:3, 3] *= unit
+    return T

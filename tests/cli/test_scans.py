@@ -1,0 +1,159 @@
+"""`byoc register-scans` end to end on fragments of a real posed sequence; bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from byoc_cli.cli.main import cli
+from byoc_cli.io import read_point_cloud, read_transform, write_ply
+from tests.pipeline._scans_data import desk_fragments, pose_errors
+
+
+def _invoke(args: list) -> object:
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def _one_error_line(result, *needles: str) -> None:
+    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error:")]
+    assert len(lines) == 1, result.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def desk(shared_data, tmp_path_factory):
+    clouds, gt = desk_fragments(shared_data)
+    folder = tmp_path_factory.mktemp("scans")
+    paths = []
+    for k, cloud in enumerate(clouds):
+        paths.append(folder / f"frag{k}.ply")
+        write_ply(paths[-1], cloud)
+    return paths, gt
+
+
+@pytest.fixture(scope="module")
+def run(desk, tmp_path_factory):
+    paths, _ = desk
+    out = tmp_path_factory.mktemp("run") / "scan"
+    merged = out.parent / "merged.ply"
+    result = _invoke(
+        ["register-scans", *paths, "--out", out, "--features", "fpfh", "--merged", merged]
+    )
+    return result, out, merged
+
+
+def test_register_scans_writes_poses_trajectory_report_and_model(desk, run):
+    o3d = pytest.importorskip("open3d")
+    paths, gt = desk
+    result, out, merged = run
+    assert result.exit_code == 0, result.output
+    assert result.stdout.startswith(f"{out}: 3/3 scans placed, 3/3 pairs kept")
+    poses = [read_transform(out / "poses" / f"frag{k}.txt") for k in range(3)]
+    rotation, translation = pose_errors(poses, gt)
+    print(f"register-scans CLI: median error {rotation:.2f} deg, {100 * translation:.1f} cm")
+    assert rotation < 5.0 and translation < 0.08  # measured 2.92 deg, 4.2 cm
+    trajectory = o3d.io.read_pinhole_camera_trajectory(str(out / "trajectory.log"))
+    got = [np.linalg.inv(p.extrinsic) for p in trajectory.parameters]
+    np.testing.assert_allclose(got, poses, atol=1e-7)
+    report = json.loads((out / "report.json").read_text())
+    assert report["pairs_tried"] == 3 and report["pairs_kept"] == 3
+    assert report["edges_pruned"] == 0 and report["unplaced"] == []
+    assert all(0.3 <= p["fitness"] <= 1 for p in report["pairs"])
+    assert {"load", "features", "pairs", "pose_graph", "merge"} <= set(report["timings_s"])
+    model = read_point_cloud(merged).points
+    # the merged model is voxelised at 1 cm: fewer points than the three fragments
+    assert 0 < len(model) < sum(len(read_point_cloud(p).points) for p in paths)
+
+
+def test_a_rerun_into_its_own_folder_is_allowed(desk, run, tmp_path):
+    paths, _ = desk
+    _, out, _ = run
+    result = _invoke(["register-scans", *paths[:2], "--out", out, "--features", "fpfh"])
+    assert result.exit_code == 0, result.output
+
+
+def test_a_scan_that_overlaps_nothing_is_unplaced_exit_3(desk, tmp_path):
+    paths, _ = desk
+    rng = np.random.default_rng(0)
+    elsewhere = tmp_path / "elsewhere.ply"
+    write_ply(elsewhere, rng.uniform(0, 1, (5000, 3)) + 50.0)
+    out = tmp_path / "scan"
+    result = _invoke(["register-scans", paths[0], paths[1], elsewhere, "--out", out,
+                      "--features", "fpfh"])  # fmt: skip
+    assert result.exit_code == 3, result.output
+    assert "1 scan(s) not placed: " in result.stderr and "elsewhere.ply" in result.stderr
+    assert sorted(p.name for p in (out / "poses").iterdir()) == ["frag0.txt", "frag1.txt"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["unplaced"] == [str(elsewhere)] and report["num_placed"] == 2
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def _cube(path: Path) -> Path:
+    grid = np.stack(np.meshgrid(*[np.linspace(0, 1, 12)] * 3), -1).reshape(-1, 3)
+    write_ply(path, grid)
+    return path
+
+
+@pytest.mark.parametrize(
+    "case, needle",
+    [("missing", "missing.ply"), ("corrupt", "bad.ply"), ("millimetres", "big.ply")],
+)
+def test_bad_scans_give_one_line_exit_1_and_no_folder(tmp_path, case, needle):
+    good = _cube(tmp_path / "good.ply")
+    if case == "missing":
+        bad = tmp_path / "missing.ply"
+    elif case == "corrupt":
+        bad = tmp_path / "bad.ply"
+        bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\n")
+    else:
+        bad = tmp_path / "big.ply"
+        write_ply(bad, np.random.default_rng(0).uniform(0, 5000, (100, 3)))
+    out = tmp_path / "out"
+    merged = tmp_path / "merged.ply"
+    result = _invoke(["register-scans", good, bad, "--out", out, "--features", "fpfh",
+                      "--merged", merged])  # fmt: skip
+    assert result.exit_code == 1, result.output
+    _one_error_line(result, needle)
+    assert not out.exists() and not merged.exists()
+
+
+def test_an_existing_folder_keeps_what_it_had(tmp_path):
+    good = _cube(tmp_path / "good.ply")
+    out = tmp_path / "out"
+    (out / "poses").mkdir(parents=True)
+    result = _invoke(["register-scans", good, tmp_path / "nope.ply", "--out", out,
+                      "--features", "fpfh"])  # fmt: skip
+    assert result.exit_code == 1
+    assert (out / "poses").is_dir() and not any((out / "poses").iterdir())
+
+
+def test_a_foreign_folder_is_refused(tmp_path):
+    good = _cube(tmp_path / "good.ply")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    result = _invoke(["register-scans", good, good.with_name("x.ply"), "--out", out])
+    assert result.exit_code == 1
+    _one_error_line(result, "not empty")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_usage_errors_exit_2(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a, b = _cube(tmp_path / "a" / "scan.ply"), _cube(tmp_path / "b" / "scan.ply")
+    out = tmp_path / "out"
+    one = _invoke(["register-scans", a, "--out", out, "--features", "fpfh"])
+    assert one.exit_code == 2 and "at least 2 scans" in one.output
+    same = _invoke(["register-scans", a, b, "--out", out, "--features", "fpfh"])
+    assert same.exit_code == 2 and "same name" in same.output
+    weights = _invoke(["register-scans", a, tmp_path / "c.ply", "--out", out])
+    assert weights.exit_code == 2 and "--weights" in weights.output
+    assert not out.exists()
