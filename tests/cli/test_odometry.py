@@ -101,13 +101,17 @@ def test_a_corrupt_depth_frame_is_one_line_exit_1(orbit, tmp_path):
     assert not out.exists() and not json_path.exists()
 
 
-def test_missing_folder_and_usage_errors(orbit, tmp_path):
+def test_missing_folder_and_usage_errors(orbit, tmp_path, monkeypatch):
     missing = _invoke(["odometry", "--rgbd-dir", tmp_path / "nope", "-o", tmp_path / "t.txt",
                        *FAST])  # fmt: skip
     assert missing.exit_code == 1
     _one_error_line(missing, "nope")
     both = _invoke(["odometry", "--rgbd-dir", orbit, "-o", "-", "--json", "-", *FAST])
     assert both.exit_code == 2
+    # an install without shipped weights: byoc features need --weights
+    from byoc_cli.pipeline import default_weights
+
+    monkeypatch.setattr(default_weights, "DEFAULT_WEIGHTS", tmp_path / "none.safetensors")
     weights = _invoke(["odometry", "--rgbd-dir", orbit, "-o", tmp_path / "t.txt"])
     assert weights.exit_code == 2 and "--weights" in weights.output
     assert not (tmp_path / "t.txt").exists()

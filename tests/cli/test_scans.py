@@ -145,7 +145,7 @@ def test_a_foreign_folder_is_refused(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
-def test_usage_errors_exit_2(tmp_path):
+def test_usage_errors_exit_2(tmp_path, monkeypatch):
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     a, b = _cube(tmp_path / "a" / "scan.ply"), _cube(tmp_path / "b" / "scan.ply")
@@ -154,6 +154,10 @@ def test_usage_errors_exit_2(tmp_path):
     assert one.exit_code == 2 and "at least 2 scans" in one.output
     same = _invoke(["register-scans", a, b, "--out", out, "--features", "fpfh"])
     assert same.exit_code == 2 and "same name" in same.output
+    # an install without shipped weights: byoc features need --weights
+    from byoc_cli.pipeline import default_weights
+
+    monkeypatch.setattr(default_weights, "DEFAULT_WEIGHTS", tmp_path / "none.safetensors")
     weights = _invoke(["register-scans", a, tmp_path / "c.ply", "--out", out])
     assert weights.exit_code == 2 and "--weights" in weights.output
     assert not out.exists()
