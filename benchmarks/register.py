@@ -9,9 +9,11 @@ Prints, on the 3DMatch sample fragments (or any pair given), at 2.5 cm:
   * the peak RSS of the whole `byoc register` command (a subprocess);
   * pairs per second of `byoc register-batch` against a loop of single `byoc register`
     processes on the same pairs (every pair of the sample's fragments; whole processes,
-    shipped weights, defaults), and their ratio.
+    shipped weights, defaults), and their ratio;
+  * whole `byoc register` processes on the pair: the default (shipped weights, learned-feature
+    defaults) against `--features fpfh`, interleaved, medians and their ratio.
 
-Usage: python benchmarks/register.py [--repeats 5] [--only batch] [SOURCE TARGET]
+Usage: python benchmarks/register.py [--repeats 5] [--only batch|whole] [SOURCE TARGET]
 """
 
 from __future__ import annotations
@@ -167,6 +169,24 @@ def print_batch(folder: Path) -> None:
     )
 
 
+def whole_process(src: Path, tgt: Path, repeats: int) -> None:
+    """Median wall time of whole `byoc register` processes: default against --features fpfh."""
+    byoc = [sys.executable, "-m", "byoc_cli.cli.main", "-q", "register", str(src), str(tgt)]
+    times: dict[str, list[float]] = {"default": [], "fpfh": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(repeats):  # interleaved, so that load changes hit both alike
+            for name, extra in (("default", []), ("fpfh", ["--features", "fpfh"])):
+                start = time.perf_counter()
+                subprocess.run([*byoc, *extra, "-o", str(Path(tmp) / "T.txt")], check=True)
+                times[name].append(time.perf_counter() - start)
+    d, f = statistics.median(times["default"]), statistics.median(times["fpfh"])
+    print(
+        f"\nwhole `byoc register` process, {src.name} -> {tgt.name}, median of {repeats}:\n"
+        f"  default (shipped weights): {d:.2f} s\n  --features fpfh: {f:.2f} s\n"
+        f"  ratio default / fpfh: {d / f:.2f} (bar: <= 1)"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -176,10 +196,15 @@ def main() -> None:
         default=[SAMPLE / "cloud_bin_0.ply", SAMPLE / "cloud_bin_4.ply"],
     )
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--only", choices=["batch"], help="Run only the batch-vs-loop part.")
+    parser.add_argument(
+        "--only", choices=["batch", "whole"], help="Run only the batch-vs-loop or whole part."
+    )
     args = parser.parse_args()
     if args.only == "batch":
         print_batch(SAMPLE)
+        return
+    if args.only == "whole":
+        whole_process(*args.pair, args.repeats)
         return
     src_path, tgt_path = args.pair
     src_np = read_point_cloud(src_path).points
