@@ -172,10 +172,7 @@ class EvalRun:
                 "--method byoc needs --weights FILE (this install ships no trained weights); "
                 "--method byoc-random evaluates a random encoder"
             )
-        from byoc_cli.pipeline.default_weights import verify_default_weights
-
-        verify_default_weights()
-        return [packaged]
+        return [packaged]  # loaded (checksum checked) by evaluation.methods
 
     def build_methods(self, **extra: Any) -> list:
         from byoc_cli.evaluation.methods import build_methods

@@ -295,10 +295,14 @@ def _byoc_specs(weights: Sequence[Path], seed: int, device: str) -> list[Feature
     del seed
     if not weights:
         raise ValueError("method byoc needs weights (or use byoc-random for a random encoder)")
+    from byoc_cli.pipeline.default_weights import default_weights_path, load_default_weights
+
+    shipped = default_weights_path()
     labels = weights_labels(weights)
     specs = []
     for index, path in enumerate(weights):
-        loaded = load_weights(path)
+        is_shipped = shipped is not None and Path(path).resolve() == shipped.resolve()
+        loaded = load_default_weights() if is_shipped else load_weights(path)
         voxel = float(loaded.metadata["voxel_size"])
         label = labels[index]
         specs.append(

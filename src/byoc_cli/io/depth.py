@@ -157,6 +157,26 @@ def read_intrinsics(path: str | os.PathLike[str]) -> Intrinsics:
     return _intrinsics_from_text(text, path)
 
 
+def valid_depth(depth_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Check a depth image and its intrinsics; returns ``(depth_m, K, valid (H, W) bool)``.
+
+    Raises:
+        ShapeError: ``depth_m`` is not 2-D or ``K`` is not 3x3.
+        ValueError: ``K`` is not finite and invertible.
+    """
+    depth_m = np.asarray(depth_m)
+    K = np.asarray(K, dtype=np.float64)
+    if depth_m.ndim != 2:
+        raise ShapeError(f"depth_m must be (H, W), got {depth_m.shape}")
+    if K.shape != (3, 3):
+        raise ShapeError(f"K must be (3, 3), got {K.shape}")
+    if not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
+        raise ValueError("K must be a finite invertible matrix")
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth_m) & (depth_m > 0)
+    return depth_m, K, valid
+
+
 def depth_to_points(depth_m: np.ndarray, K: np.ndarray, *, pixel_offset: float = 0.5) -> np.ndarray:
     """Back-project a depth image to camera-frame points.
 
@@ -179,16 +199,7 @@ def depth_to_points(depth_m: np.ndarray, K: np.ndarray, *, pixel_offset: float =
         ShapeError: ``depth_m`` is not 2-D or ``K`` is not 3x3.
         ValueError: ``K`` is not finite and invertible.
     """
-    depth_m = np.asarray(depth_m)
-    K = np.asarray(K, dtype=np.float64)
-    if depth_m.ndim != 2:
-        raise ShapeError(f"depth_m must be (H, W), got {depth_m.shape}")
-    if K.shape != (3, 3):
-        raise ShapeError(f"K must be (3, 3), got {K.shape}")
-    if not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
-        raise ValueError("K must be a finite invertible matrix")
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(depth_m) & (depth_m > 0)
+    depth_m, K, valid = valid_depth(depth_m, K)
     v, u = np.nonzero(valid)
     z = depth_m[valid].astype(np.float64)
     pixels = np.stack(

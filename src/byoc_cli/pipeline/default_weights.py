@@ -32,21 +32,25 @@ def verify_default_weights(path: Path | None = None, checksum: Path | None = Non
         WeightsError: the file or its checksum is missing, or they disagree.
     """
     path = DEFAULT_WEIGHTS if path is None else path
-    checksum = DEFAULT_CHECKSUM if checksum is None else checksum
     if not path.is_file():
         raise WeightsError(path, "no weights ship with this install (pass --weights FILE)")
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    _check_digest(path, digest, DEFAULT_CHECKSUM if checksum is None else checksum)
+    return digest
+
+
+def _check_digest(path: Path, digest: str, checksum: Path) -> None:
+    """Raise unless ``digest`` is the SHA-256 recorded in ``checksum``."""
     try:
         expected = checksum.read_text(encoding="ascii").split()[0].strip().lower()
     except (OSError, IndexError, UnicodeDecodeError) as exc:
         raise WeightsError(
             checksum, "the shipped weights' checksum file is missing or empty"
         ) from exc
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
     if digest != expected:
         raise WeightsError(
             path, "the shipped weights do not match their checksum (reinstall byoc-cli)"
         )
-    return digest
 
 
 def load_default_weights():
@@ -57,5 +61,10 @@ def load_default_weights():
     """
     from byoc_cli.pipeline.weights import load_weights
 
-    verify_default_weights()
-    return load_weights(DEFAULT_WEIGHTS)
+    if not DEFAULT_WEIGHTS.is_file():
+        raise WeightsError(
+            DEFAULT_WEIGHTS, "no weights ship with this install (pass --weights FILE)"
+        )
+    loaded = load_weights(DEFAULT_WEIGHTS)  # one read: it hashes the whole file too
+    _check_digest(DEFAULT_WEIGHTS, loaded.file_sha256, DEFAULT_CHECKSUM)
+    return loaded

@@ -207,7 +207,7 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
         truncate_metrics,
         write_run_config,
     )
-    from byoc_cli.training.trainer import METRICS_FILE, PLOT_FILE, TrainResult
+    from byoc_cli.training.trainer import METRICS_FILE, PLOT_FILE, StepInfo, TrainResult
 
     run_dir = Path(config.out)
     _check_run_folder(run_dir, resume, CONFIG_FILE)
@@ -295,8 +295,6 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
             last = step == config.steps
             elapsed = time.perf_counter() - t_window
             rate = len(window) / elapsed if elapsed > 0 else 0.0
-            from byoc_cli.training.trainer import StepInfo
-
             eta = (config.steps - step) / rate if rate > 0 else float("nan")
             callbacks.call(
                 "on_step", StepInfo(step, config.steps, {"loss": values["loss"]}, rate, eta)

@@ -10,8 +10,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from byoc_cli.errors import ShapeError
-
 
 class BackProjection(NamedTuple):
     """Output of :func:`backproject`.
@@ -43,16 +41,9 @@ def backproject(depth_m: np.ndarray, K: np.ndarray) -> BackProjection:
         ShapeError: ``depth_m`` not 2-D or ``K`` not 3x3.
         ValueError: ``K`` not finite and invertible.
     """
-    depth_m = np.asarray(depth_m)
-    K = np.asarray(K, dtype=np.float64)
-    if depth_m.ndim != 2:
-        raise ShapeError(f"depth_m must be (H, W), got {depth_m.shape}")
-    if K.shape != (3, 3):
-        raise ShapeError(f"K must be (3, 3), got {K.shape}")
-    if not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
-        raise ValueError("K must be a finite invertible matrix")
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(depth_m) & (depth_m > 0)
+    from byoc_cli.io.depth import valid_depth
+
+    depth_m, K, valid = valid_depth(depth_m, K)
     pixel_index = np.flatnonzero(valid).astype(np.int64)
     v, u = np.divmod(pixel_index, depth_m.shape[1])
     z = depth_m.reshape(-1)[pixel_index].astype(np.float64)
