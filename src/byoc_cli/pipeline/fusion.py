@@ -140,7 +140,8 @@ def fuse_fragment(
         min_observations: frames (>= 1) that must see a voxel for it to give a point.
 
     Returns:
-        ``(N, 3)`` float32 points in metres, in the first frame's camera frame (N may be 0).
+        ``(N, 3)`` float32 points in metres, in the first frame's camera frame, sorted by
+        x, then y, then z (the same array on every run; N may be 0).
 
     Raises:
         ShapeError: ``poses_world_cam`` not ``(F, 4, 4)`` rigid, no frame index, or an index
@@ -209,7 +210,10 @@ def fuse_fragment(
         return np.zeros((0, 3), dtype=np.float32)
     if "positions" not in cloud.point:
         return np.zeros((0, 3), dtype=np.float32)
-    return np.ascontiguousarray(cloud.point.positions.numpy(), dtype=np.float32).reshape(-1, 3)
+    points = np.asarray(cloud.point.positions.numpy(), dtype=np.float32).reshape(-1, 3)
+    # open3d's hash map returns the points in an order that changes from run to run; sorted,
+    # a fragment is the same file every time (and so is every registration that samples it)
+    return np.ascontiguousarray(points[np.lexsort(points.T[::-1])])
 
 
 # ================================================================== ground truth
