@@ -8,7 +8,10 @@ Usage::
 Features are computed once per cloud (the weights' voxel), then every setting below runs on
 the same features: randomized Procrustes (the paper's) and RANSAC, with 200 / 500 / 1000
 ratio-test correspondences per direction, 5000 / 10000 points, with and without mutual
-filtering, each without and with point-to-plane ICP at the end. Printed per pair set:
+filtering, each without and with point-to-plane ICP at the end (on the kept points, on the
+full-resolution points, or coarse-to-fine on the full-resolution points as ``register-scans``
+does). ``--icp``, ``--max-points`` and ``--num-correspondences`` replace the grid's values
+(RANSAC only when given). Printed per pair set:
 success (rotation < 15 deg and translation < 30 cm), rotation accuracy at 5 deg, translation
 accuracy at 10 cm, median errors and the median seconds of matching + fitting (+ ICP).
 """
@@ -70,8 +73,12 @@ def main() -> int:
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--quick", action="store_true", help="fewer settings")
+    parser.add_argument("--icp", action="append", help="none, kept-F, full-F or multiscale-F")
+    parser.add_argument("--max-points", type=int, action="append")
+    parser.add_argument("--num-correspondences", type=int, action="append")
     args = parser.parse_args()
 
+    from byoc_cli.pipeline import posegraph
     from byoc_cli.pipeline.features import ByocExtractor
     from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
     from byoc_cli.pipeline.weights import load_weights
@@ -85,9 +92,25 @@ def main() -> int:
         "max_points": [5000] if args.quick else [5000, 10000],
         "mutual": [False],
         # ICP: none; on the kept points at 2 voxels (5 cm); on the full-resolution points at
-        # 0.4 voxel (1 cm)
+        # 0.4 voxel (1 cm); multiscale-0.4: coarse to fine on the full-resolution points at
+        # 4, 2 and 1 times 0.4 voxel (posegraph.multiscale_icp)
         "icp": ["none", "kept-2.0", "full-0.4"],
     }
+    for key, given in (
+        ("icp", args.icp),
+        ("max_points", args.max_points),
+        ("num_correspondences", args.num_correspondences),
+    ):
+        if given:
+            grid[key] = given
+            grid["estimator"] = ["ransac"]
+    prepared: dict[tuple[str, float], object] = {}
+
+    def multiscale(key: str, points: torch.Tensor, fine: float):
+        if (key, fine) not in prepared:
+            prepared[(key, fine)] = posegraph.prepare_cloud(points.double().numpy(), fine)
+        return prepared[(key, fine)]
+
     settings = [dict(zip(grid, v, strict=True)) for v in itertools.product(*grid.values())]
     for name, pairs in _pair_sets(args).items():
         feats: dict[str, object] = {}
@@ -109,7 +132,15 @@ def main() -> int:
                     t0 = time.perf_counter()
                     try:
                         T = estimate_transform(fs, ft, config, voxel).T_tgt_src
-                        if s["icp"] != "none":
+                        if s["icp"].startswith("multiscale"):
+                            fine = float(s["icp"].split("-")[1]) * voxel
+                            T = posegraph.multiscale_icp(
+                                multiscale(key_s, ps, fine),
+                                multiscale(key_t, pt, fine),
+                                T.double().numpy(),
+                            ).T_tgt_src
+                            T = torch.from_numpy(T)
+                        elif s["icp"] != "none":
                             which, factor = s["icp"].split("-")
                             a, b = (fs.points, ft.points) if which == "kept" else (ps, pt)
                             T = refine_icp(a, b, T, float(factor) * voxel)
