@@ -1,0 +1,111 @@
+"""One Gauss-Newton step of point-to-plane alignment that holds degenerate directions.
+
+Point-to-plane ICP minimises ``sum_i w_i (n_i . (T p_i - q_i))^2``. On scenes of a few
+large planes (a cabinet on a floor, a corridor) the objective is nearly flat along some
+motions (sliding along the planes), and plain ICP drifts along them by whatever the noise
+says: started at the ground truth of the 28 ``tum_fr3_cabinet`` pairs (spacing 2), the plain
+multiscale ICP ended more than 10 cm away on 9 of them, this step on 2
+(``benchmarks/estimators.py --from-gt``, README). So the translations along directions that
+almost no normal faces (``sum w (n . e)^2`` below ``sliding`` times the largest) are not
+moved: there the previous estimate (from feature matching) is kept. Following Zhang, Kaess
+and Singh ("On degeneracy of optimization-based state estimation problems", ICRA 2016), the
+remaining step is solved in the eigenbasis of the normal equations, and directions whose
+eigenvalue is below ``degeneracy`` times the largest can be held too (off by default: at
+0.05 it lost pairs on ``tum_fr1_desk_full``).
+
+Linearisation about the current points, with ``c`` their mean and ``L`` their RMS radius
+(so rotation and translation columns have the same units): a motion ``xi = (w, v)`` moves
+``p`` to ``p + (w / L) x (p - c) + v``; the residual row is ``[((p - c) x n) / L, n]``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.transforms import axis_angle_to_matrix, make_transform
+
+#: directions with eigenvalue below this share of the largest are held (0 = none)
+DEGENERACY = 0.0
+#: translations along directions that normals face less than this share are held
+SLIDING = 0.02
+
+
+class PlaneStep(NamedTuple):
+    """Outcome of :func:`point_to_plane_step`.
+
+    Attributes:
+        T: ``(4, 4)`` float64 increment; apply as ``T @ T_current``.
+        rank: directions moved (0 to 6).
+        eigenvalues: ``(6,)`` of the normal equations, ascending, normalised to the largest.
+    """
+
+    T: torch.Tensor
+    rank: int
+    eigenvalues: torch.Tensor
+
+
+def point_to_plane_step(
+    p: torch.Tensor,
+    q: torch.Tensor,
+    n: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    degeneracy: float = DEGENERACY,
+    sliding: float = SLIDING,
+) -> PlaneStep:
+    """The increment that moves points ``p`` onto the planes ``(q, n)``.
+
+    Args:
+        p: ``(K, 3)`` source points (already under the current transform).
+        q: ``(K, 3)`` their target points.
+        n: ``(K, 3)`` unit normals at ``q``.
+        weights: ``(K,)`` non-negative weights; None = ones.
+        degeneracy: eigenvalue share below which a direction is held; 0 = plain
+            point-to-plane (every direction with a non-zero eigenvalue moves).
+        sliding: translations along directions ``e`` with ``sum w (n . e)^2`` below this
+            share of the largest (few surfaces face them: sliding along planes) are held.
+
+    Returns:
+        :class:`PlaneStep`; the identity with rank 0 when there is nothing to fit.
+
+    Raises:
+        ShapeError: shapes differ or are not ``(K, 3)``.
+    """
+    if p.ndim != 2 or p.shape[-1] != 3 or q.shape != p.shape or n.shape != p.shape:
+        raise ShapeError(f"p, q, n must all be (K, 3), got {p.shape}, {q.shape}, {n.shape}")
+    p, q, n = p.double(), q.double(), n.double()
+    w = torch.ones(len(p), dtype=torch.float64) if weights is None else weights.double()
+    if len(p) == 0 or float(w.sum()) <= 0:
+        return PlaneStep(torch.eye(4, dtype=torch.float64), 0, torch.zeros(6, dtype=torch.float64))
+    c = (w[:, None] * p).sum(0) / w.sum()
+    centred = p - c
+    radius = torch.sqrt((w * (centred**2).sum(1)).sum() / w.sum()).clamp_min(1e-9)
+    J = torch.cat([torch.linalg.cross(centred, n) / radius, n], dim=1)  # (K, 6)
+    r = ((p - q) * n).sum(1)
+    H = J.T @ (w[:, None] * J)
+    g = -J.T @ (w * r)
+    B = _free_basis(n, w, sliding)  # (6, d): the motions allowed to move
+    lam, U = torch.linalg.eigh(B.T @ H @ B)
+    top = lam[-1].clamp_min(1e-300)
+    keep = lam > max(degeneracy, 1e-12) * top
+    xi = B @ (U[:, keep] @ ((U[:, keep].T @ (B.T @ g)) / lam[keep]))
+    R = axis_angle_to_matrix(xi[:3] / radius)
+    T = make_transform(R, c - R @ c + xi[3:])
+    full = torch.linalg.eigvalsh(H)
+    return PlaneStep(T.double(), int(keep.sum()), full / full[-1].clamp_min(1e-300))
+
+
+def _free_basis(n: torch.Tensor, w: torch.Tensor, sliding: float) -> torch.Tensor:
+    """``(6, d)`` orthonormal basis of the motions whose translation part avoids the
+    directions that almost no normal in ``n (K, 3)`` faces (weights ``w (K,)``)."""
+    mu, E = torch.linalg.eigh((n.T * w) @ n)
+    held = E[:, mu < sliding * mu[-1].clamp_min(1e-300)]  # (3, h)
+    basis = torch.eye(6, dtype=torch.float64)
+    if held.shape[1] == 0:
+        return basis
+    C = torch.zeros(6, held.shape[1], dtype=torch.float64)
+    C[3:] = held
+    U, _, _ = torch.linalg.svd(basis - C @ C.T)
+    return U[:, : 6 - held.shape[1]]

@@ -1,0 +1,79 @@
+"""Coarse-to-fine point-to-plane refinement: recovery, the held direction of a corridor."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from byoc_cli.geometry.transforms import (
+    apply_transform,
+    axis_angle_to_matrix,
+    invert_transform,
+    make_transform,
+)
+from byoc_cli.pipeline.refine import refine_multiscale
+
+pytest.importorskip("open3d")
+
+
+def _boxes(n: int, boxes, generator: torch.Generator) -> torch.Tensor:
+    """``(n, 3)`` points spread over the faces of axis-aligned ``boxes`` ((lo, hi) pairs)."""
+    out = []
+    for lo, hi in boxes:
+        lo, hi = torch.tensor(lo).double(), torch.tensor(hi).double()
+        m = n // len(boxes)
+        p = lo + torch.rand(m, 3, generator=generator, dtype=torch.float64) * (hi - lo)
+        face = torch.randint(0, 6, (m,), generator=generator)
+        axis = face // 2
+        p[torch.arange(m), axis] = torch.where(face % 2 == 0, lo[axis], hi[axis])
+        out.append(p)
+    return torch.cat(out)
+
+
+def _pose_error(T, T_ref):
+    delta = invert_transform(T_ref) @ T
+    cos = (torch.trace(delta[:3, :3]) - 1) / 2
+    return math.degrees(math.acos(float(cos.clamp(-1, 1)))), float(delta[:3, 3].norm())
+
+
+ROOM = [([-1.5, -1.2, 0.0], [1.5, 1.2, 2.0]), ([-0.4, -0.3, 0.0], [0.3, 0.2, 0.7])]
+
+
+def test_recovers_a_known_motion_from_a_rough_start(generator):
+    tgt = _boxes(60_000, ROOM, generator)
+    R = axis_angle_to_matrix(torch.tensor([0.1, 0.3, -0.2], dtype=torch.float64))
+    T_true = make_transform(R, torch.tensor([0.2, -0.1, 0.05], dtype=torch.float64))
+    src = apply_transform(invert_transform(T_true), _boxes(60_000, ROOM, generator))
+    nudge = make_transform(
+        axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(3.0)], dtype=torch.float64)),
+        torch.tensor([0.04, -0.03, 0.0], dtype=torch.float64),
+    )
+    out = refine_multiscale(src, tgt, nudge @ T_true, voxel_size=0.025)
+    rot, trans = _pose_error(out.T_tgt_src, T_true)
+    assert _pose_error(nudge @ T_true, T_true)[1] > 0.04
+    assert rot < 0.3 and trans < 0.005
+    assert out.rank == 6 and out.fitness > 0.5  # sparse samples: 1.5 cm gate
+
+
+def test_a_corridor_keeps_the_start_along_its_axis_and_fixes_the_rest(generator):
+    # two walls and a floor along y: nothing in the geometry says where along y
+    corridor = [([-1.0, -4.0, 0.0], [-1.0, 4.0, 2.0]), ([1.0, -4.0, 0.0], [1.0, 4.0, 2.0])]
+    corridor.append(([-1.0, -4.0, 0.0], [1.0, 4.0, 0.0]))
+    tgt = _boxes(60_000, corridor, generator)
+    src = _boxes(60_000, corridor, generator)
+    start = torch.eye(4, dtype=torch.float64)
+    start[:3, 3] = torch.tensor([0.04, 0.30, -0.03])
+    out = refine_multiscale(src, tgt, start, voxel_size=0.025)
+    assert out.T_tgt_src[1, 3] == pytest.approx(0.30, abs=0.01)  # held
+    assert abs(float(out.T_tgt_src[0, 3])) < 0.005 and abs(float(out.T_tgt_src[2, 3])) < 0.005
+    assert out.rank == 5
+
+
+def test_too_few_points_return_the_start():
+    pts = torch.rand(4, 3, dtype=torch.float64)
+    start = torch.eye(4, dtype=torch.float64)
+    start[0, 3] = 0.1
+    out = refine_multiscale(pts, pts, start, voxel_size=0.025)
+    assert torch.equal(out.T_tgt_src, start)
