@@ -9,9 +9,11 @@ Features are computed once per cloud (the weights' voxel), then every setting be
 the same features: randomized Procrustes (the paper's) and RANSAC, with 200 / 500 / 1000
 ratio-test correspondences per direction, 5000 / 10000 points, with and without mutual
 filtering, each without and with point-to-plane ICP at the end (on the kept points, on the
-full-resolution points, or coarse-to-fine on the full-resolution points as ``register-scans``
-does). ``--icp``, ``--max-points`` and ``--num-correspondences`` replace the grid's values
-(RANSAC only when given). Printed per pair set:
+full-resolution points, coarse-to-fine on the full-resolution points as ``register-scans``
+does, or ``refine``: ``byoc register --refine multiscale``, the learned default). ``--icp``,
+``--max-points`` and ``--num-correspondences`` replace the grid's values (RANSAC only when
+given); ``--from-gt`` starts the refinement at the ground truth (how far it moves a correct
+pose). Printed per pair set:
 success (rotation < 15 deg and translation < 30 cm), rotation accuracy at 5 deg, translation
 accuracy at 10 cm, median errors and the median seconds of matching + fitting (+ ICP).
 """
@@ -73,13 +75,25 @@ def main() -> int:
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--quick", action="store_true", help="fewer settings")
-    parser.add_argument("--icp", action="append", help="none, kept-F, full-F or multiscale-F")
+    parser.add_argument(
+        "--icp",
+        action="append",
+        help="none, kept-F, full-F, multiscale-F, refine (byoc's --refine multiscale) or "
+        "refine-plain (the same without holding sliding directions)",
+    )
+    parser.add_argument(
+        "--from-gt",
+        action="store_true",
+        help="start the refinement at the ground truth instead of the feature estimate "
+        "(how far refinement alone moves a correct pose)",
+    )
     parser.add_argument("--max-points", type=int, action="append")
     parser.add_argument("--num-correspondences", type=int, action="append")
     args = parser.parse_args()
 
     from byoc_cli.pipeline import posegraph
     from byoc_cli.pipeline.features import ByocExtractor
+    from byoc_cli.pipeline.refine import refine_multiscale
     from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
     from byoc_cli.pipeline.weights import load_weights
 
@@ -132,6 +146,8 @@ def main() -> int:
                     t0 = time.perf_counter()
                     try:
                         T = estimate_transform(fs, ft, config, voxel).T_tgt_src
+                        if args.from_gt:
+                            T = torch.as_tensor(np.asarray(T_gt), dtype=torch.float64)
                         if s["icp"].startswith("multiscale"):
                             fine = float(s["icp"].split("-")[1]) * voxel
                             T = posegraph.multiscale_icp(
@@ -140,6 +156,9 @@ def main() -> int:
                                 T.double().numpy(),
                             ).T_tgt_src
                             T = torch.from_numpy(T)
+                        elif s["icp"].startswith("refine"):
+                            held = {"sliding": 0.0} if s["icp"] == "refine-plain" else {}
+                            T = refine_multiscale(ps, pt, T, voxel, **held).T_tgt_src
                         elif s["icp"] != "none":
                             which, factor = s["icp"].split("-")
                             a, b = (fs.points, ft.points) if which == "kept" else (ps, pt)

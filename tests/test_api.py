@@ -122,3 +122,20 @@ def test_missing_file_is_an_input_error(tmp_path: Path):
         byoc_cli.load_cloud(tmp_path / "none.ply")
     with pytest.raises(ValueError, match="features must be"):
         byoc_cli.Registrar("nope")
+
+
+def test_multiscale_refinement_runs_on_the_full_cloud_and_with_kept_points_alone():
+    src = _cube(2)
+    tgt, T = _moved(_cube(3))
+    registrar = byoc_cli.Registrar("fpfh")
+    f_src, f_tgt = registrar.extract(src), registrar.extract(tgt)
+    assert np.array_equal(f_src.cloud, src) and np.array_equal(f_tgt.cloud, tgt)
+    full = registrar.match(f_src, f_tgt, refine="multiscale")
+    assert full.refine == "multiscale" and "refine" in full.timings
+    assert np.abs(full.T_tgt_src - T).max() < 0.01
+    # features read back from a file carry no cloud: the kept points are refined instead
+    kept = registrar.match(
+        f_src._replace(cloud=None), f_tgt._replace(cloud=None), refine="multiscale"
+    )
+    assert np.abs(kept.T_tgt_src - T).max() < 0.05
+    assert not np.array_equal(kept.T_tgt_src, full.T_tgt_src)

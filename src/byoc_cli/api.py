@@ -147,6 +147,7 @@ class Registrar:
             scale=1.0 if scale is None else float(scale),
             features=self.features,
             weights_sha256=self.weights_sha256,
+            cloud=points,
         )
 
     def match(
@@ -165,7 +166,8 @@ class Registrar:
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale).
             estimator: ``"ransac"`` or ``"procrustes"``; None: the feature type's default.
-            refine: ``"none"`` or ``"icp"``; None: the feature type's default.
+            refine: ``"none"``, ``"icp"`` or ``"multiscale"``; None: the feature type's
+                default (``"multiscale"`` runs on ``Features.cloud`` where both have one).
             max_points: seeded random subset per cloud that enters matching (0 = all).
             num_correspondences: top-k ratio-test matches kept per direction.
             seed: seeds every random choice.
@@ -203,7 +205,10 @@ class Registrar:
                 torch.empty(0, 3, dtype=torch.int64),  # voxel coordinates: unused by matching
             )
 
-        result = estimate_transform(cloud(src), cloud(tgt), config, src.voxel_size)
+        full = None
+        if src.cloud is not None and tgt.cloud is not None:
+            full = (torch.from_numpy(src.cloud), torch.from_numpy(tgt.cloud))
+        result = estimate_transform(cloud(src), cloud(tgt), config, src.voxel_size, full)
         T = result.T_tgt_src.clone()
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s
         return Registration(

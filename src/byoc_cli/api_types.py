@@ -28,6 +28,8 @@ class Features(NamedTuple):
         scale: the factor the input coordinates were multiplied by (1.0 = metres already).
         features: ``"byoc"`` or ``"fpfh"``.
         weights_sha256: SHA-256 of the weights file (None for fpfh).
+        cloud: ``(N, 3)`` float64 input points in metres, which ``"multiscale"``
+            refinement runs on; None (features read back from a file): the kept points.
     """
 
     points: np.ndarray
@@ -37,6 +39,7 @@ class Features(NamedTuple):
     scale: float
     features: str
     weights_sha256: str | None
+    cloud: np.ndarray | None = None
 
 
 class Registration(NamedTuple):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -252,6 +253,26 @@ def test_bad_input_exit_1_one_line_no_output(runner, tmp_path, case):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".") or "tmp" in p.name]
 
 
+def test_default_refinement_without_open3d_says_so_and_none_registers(
+    runner, random_weights, tmp_path, monkeypatch
+):
+    # byoc's default refinement needs open3d; without it: one line, exit 1, nothing written,
+    # and --refine none registers with the rest of the pipeline (open3d-free)
+    monkeypatch.setitem(sys.modules, "open3d", None)
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    out, report = tmp_path / "T.txt", tmp_path / "r.json"
+    args = ["register", str(src), str(tgt), "--weights", str(random_weights), "-o", str(out)]
+    res = runner.invoke(cli, [*args, "--json", str(report)])
+    assert res.exit_code == 1, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("byoc: error")]
+    assert len(lines) == 1, res.stderr
+    assert "open3d" in lines[0] and "--refine none" in lines[0]
+    assert not out.exists() and not report.exists()
+    res = runner.invoke(cli, [*args, "--refine", "none"])
+    assert res.exit_code == 0, res.output
+    assert read_transform(out).shape == (4, 4)
+
+
 def test_nan_points_dropped_with_warning(runner, tmp_path):
     src, tgt, _ = _synthetic_pair(tmp_path)
     from byoc_cli.io import read_point_cloud
@@ -364,7 +385,7 @@ def test_depth_images_with_intrinsics_register_real_tum_frames(runner, shared_da
 
 @pytest.mark.parametrize(
     ("features", "expected"),
-    [("fpfh", (10000, "ransac", 2000, "none")), ("byoc", (5000, "ransac", 2000, "none"))],
+    [("fpfh", (10000, "ransac", 2000, "none")), ("byoc", (5000, "ransac", 5000, "multiscale"))],
 )
 def test_per_feature_defaults_are_reported(runner, random_weights, tmp_path, features, expected):
     src, tgt, _ = _synthetic_pair(tmp_path)

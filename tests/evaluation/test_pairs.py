@@ -112,3 +112,32 @@ def test_feature_methods_and_cache(tmp_path):
     second = evaluate_pairs(pairs, methods, PairsConfig(), FeatureCache(tmp_path / "cache"))
     assert (second.cache_hits, second.cache_misses) == (2, 0)
     assert second.records[0]["methods"]["fpfh-ransac"]["T_est"] == out["T_est"]
+
+
+def test_multiscale_refinement_gets_the_full_clouds(tmp_path, monkeypatch):
+    import dataclasses
+
+    from byoc_cli.evaluation import methods as methods_module
+
+    root = _prepared(tmp_path / "p", [_T([0.0, 0.2, 0.0], [0.1, 0.0, 0.0])])
+    (plain,) = build_methods(["fpfh-ransac"])
+    refined = dataclasses.replace(
+        plain, name="refined", config=dataclasses.replace(plain.config, refine="multiscale")
+    )
+    assert refined.needs_clouds and not plain.needs_clouds
+    assert refined.describe()["refine"] == "multiscale" and plain.describe()["refine"] == "none"
+    (random_byoc,) = build_methods(["byoc-random"])
+    assert random_byoc.needs_clouds  # the learned default refines, also for the random column
+    seen = []
+    real = methods_module.estimate_transform
+
+    def spy(src, tgt, config, voxel_size, clouds=None):
+        seen.append(None if clouds is None else (len(clouds[0]), len(clouds[1])))
+        return real(src, tgt, config, voxel_size, clouds)
+
+    monkeypatch.setattr(methods_module, "estimate_transform", spy)
+    result = evaluate_pairs(prepared_pairs(root), [plain, refined], PairsConfig())
+    assert seen == [None, (20000, 20000)]
+    out = result.records[0]["methods"]
+    assert out["refined"]["translation_error_cm"] < 0.5
+    assert out["refined"]["translation_error_cm"] < out["fpfh-ransac"]["translation_error_cm"]

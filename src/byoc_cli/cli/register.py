@@ -44,10 +44,12 @@ register_options = apply(
     ),
     click.option(
         "--refine",
-        type=click.Choice(["auto", "none", "icp"]),
+        type=click.Choice(["auto", "none", "icp", "multiscale"]),
         default="auto",
         show_default=True,
-        help="Refine with point-to-plane ICP (open3d); auto: the feature type's default (none).",
+        help="icp: Open3D's point-to-plane ICP on the kept points; multiscale: coarse-to-fine "
+        "point-to-plane ICP on the full clouds that holds directions the geometry leaves free; "
+        "auto: multiscale for byoc features, none for fpfh.",
     ),
     int_option(
         "--max-points",
@@ -57,7 +59,7 @@ register_options = apply(
     int_option(
         "--num-correspondences",
         min=3,
-        help="Top-k ratio-test matches kept per direction [default: 200 for byoc, 1000 for fpfh].",
+        help="Top-k ratio-test matches kept per direction [default: 2500 for byoc, 1000 for fpfh].",
     ),
     float_option(
         "--min-confidence",

@@ -185,7 +185,10 @@ def _evaluate_pair(pair, methods, specs, clouds, config, needs_icp) -> dict[str,
                 clouds.features(method.features, pair.source),
                 clouds.features(method.features, pair.target),
             )
-        out = method.register(icp_src, icp_tgt, feats, seed)
+        full = None
+        if method.needs_clouds:
+            full = (clouds.points(pair.source), clouds.points(pair.target))
+        out = method.register(icp_src, icp_tgt, feats, seed, full)
         seconds = time.perf_counter() - start
         rot, trans = pose_errors(out.T_tgt_src, T_gt)
         rmse = registration_rmse(out.T_tgt_src, T_gt, pair.info) if pair.info is not None else None

@@ -145,6 +145,11 @@ class Method:
     config: RegisterConfig | None = None
     icp_distance: float | None = None
 
+    @property
+    def needs_clouds(self) -> bool:
+        """True when :meth:`register` needs the full-resolution clouds (multiscale refinement)."""
+        return self.config is not None and self.config.refine == "multiscale"
+
     def describe(self) -> dict[str, Any]:
         """JSON-able settings of the method."""
         out: dict[str, Any] = {"name": self.name, "kind": self.kind}
@@ -155,6 +160,7 @@ class Method:
             out["estimator"] = self.config.estimator
             out["num_correspondences_per_direction"] = self.config.num_correspondences
             out["max_points"] = self.config.max_points
+            out["refine"] = self.config.refine or "none"
             if self.config.estimator == "procrustes":
                 out["num_subsets"] = self.config.num_subsets
                 out["subset_size"] = self.config.subset_size
@@ -180,6 +186,7 @@ class Method:
         points_tgt: torch.Tensor | None,
         feats: tuple[CloudFeatures, CloudFeatures] | None,
         seed: int,
+        clouds: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> MethodOutput:
         """Estimate ``T_tgt_src`` for one pair.
 
@@ -188,6 +195,8 @@ class Method:
                 ICP methods take clouds already voxelised with :func:`icp_points`.
             feats: ``(source, target)`` features, needed by feature methods.
             seed: seeds the subset and the estimator.
+            clouds: full-resolution ``(source, target)`` points, for methods that
+                :attr:`needs_clouds` (None: they refine on the kept points).
 
         Returns:
             :class:`MethodOutput`.
@@ -207,7 +216,9 @@ class Method:
                 )
                 return MethodOutput(T, False, None)
             config = dataclasses.replace(self.config, seed=seed)
-            result = estimate_transform(feats[0], feats[1], config, self.features.voxel_size)
+            result = estimate_transform(
+                feats[0], feats[1], config, self.features.voxel_size, clouds
+            )
             return MethodOutput(result.T_tgt_src.to(torch.float64), False, None)
         except RegistrationError as exc:
             return MethodOutput(eye, True, str(exc))

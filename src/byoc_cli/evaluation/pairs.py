@@ -315,7 +315,8 @@ def evaluate_pairs(
                     features(method.features, pair.source),
                     features(method.features, pair.target),
                 )
-            out = method.register(icp_src, icp_tgt, feats, seed)
+            full = (cloud(pair.source), cloud(pair.target)) if method.needs_clouds else None
+            out = method.register(icp_src, icp_tgt, feats, seed, full)
             seconds = time.perf_counter() - start
             rot, trans = pose_errors(out.T_tgt_src, T_gt)
             chamfer = fused_chamfer(chamfer_src, chamfer_tgt, out.T_tgt_src, T_gt)

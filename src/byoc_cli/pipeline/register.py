@@ -19,21 +19,23 @@ from byoc_cli.geometry import apply_transform
 from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
+from byoc_cli.pipeline.refine import refine_multiscale
 
 ESTIMATORS = ("procrustes", "ransac")
 
 #: per-feature defaults of ``byoc register``, the evaluation methods and the Python API,
 #: chosen by measurement (README "Defaults for learned features", "Choosing --max-points").
 FEATURE_DEFAULTS: dict[str, dict] = {
-    # learned features: RANSAC on the top 1000 ratio-test matches per direction
-    # (benchmarks/estimators.py: randomized Procrustes registered a fifth of the development
-    # fragments that RANSAC did with the same features); no ICP by default: started at the
-    # ground truth of the demo pair, ICP slides 11 cm along its walls (README)
+    # learned features: RANSAC on the top 2500 ratio-test matches per direction, then
+    # coarse-to-fine point-to-plane ICP on the full clouds that holds sliding directions
+    # (benchmarks/estimators.py, README "Measured levers"): randomized Procrustes registered a
+    # fifth of the development fragments that RANSAC did with the same features; plain ICP
+    # slid along the planes of tum_fr3_cabinet
     "byoc": {
         "estimator": "ransac",
-        "num_correspondences": 1000,
+        "num_correspondences": 2500,
         "max_points": 5000,
-        "refine": None,
+        "refine": "multiscale",
     },
     # Open3D's tutorial voxel for FPFH; RANSAC needs more than the top 200 of noisy FPFH
     # matches; 10000 keeps every point of a 3DMatch fragment at 5 cm (median rotation error
@@ -46,6 +48,10 @@ FEATURE_DEFAULTS: dict[str, dict] = {
         "refine": None,
     },
 }
+
+
+#: refinements after the robust fit
+REFINERS = (None, "icp", "multiscale")
 
 
 @dataclass(frozen=True)
@@ -61,8 +67,10 @@ class RegisterConfig:
         inlier_factor: inlier threshold as a multiple of the voxel size (RANSAC's threshold,
             and the threshold of the reported inliers and overlap).
         ransac_iterations, ransac_confidence: RANSAC's limits.
-        refine: ``None`` or ``"icp"`` (point-to-plane ICP in open3d).
-        icp_factor: ICP's correspondence distance as a multiple of the voxel size.
+        refine: ``None``, ``"icp"`` (Open3D's point-to-plane ICP on the kept points) or
+            ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to
+            fine on the full-resolution clouds, degenerate directions held).
+        icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
         seed: seeds every random choice (subset, sampling).
     """
 
@@ -82,8 +90,8 @@ class RegisterConfig:
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
-        if self.refine not in (None, "icp"):
-            raise ValueError(f"refine must be None or 'icp', got {self.refine!r}")
+        if self.refine not in REFINERS:
+            raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
         if self.num_correspondences < 1 or self.max_points < 0:
             raise ValueError("num_correspondences must be >= 1 and max_points >= 0")
 
@@ -140,9 +148,17 @@ def _subset(cloud: CloudFeatures, idx: torch.Tensor | None) -> tuple[torch.Tenso
 
 
 def estimate_transform(
-    src: CloudFeatures, tgt: CloudFeatures, config: RegisterConfig, voxel_size: float
+    src: CloudFeatures,
+    tgt: CloudFeatures,
+    config: RegisterConfig,
+    voxel_size: float,
+    clouds: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> RegistrationResult:
-    """Match two featured clouds and fit ``T_tgt_src`` (no I/O, no feature extraction)."""
+    """Match two featured clouds and fit ``T_tgt_src`` (no I/O, no feature extraction).
+
+    ``clouds``: the full-resolution ``(N, 3)``, ``(M, 3)`` points that ``"multiscale"``
+    refinement runs on (None: the kept points).
+    """
     timer = _Timer()
     start = time.perf_counter()
     generator = torch.Generator().manual_seed(config.seed)
@@ -174,6 +190,10 @@ def estimate_transform(
 
     if config.refine == "icp":
         T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
+        start = timer("refine", start)
+    elif config.refine == "multiscale":
+        full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
+        T = refine_multiscale(full_src, full_tgt, T, voxel_size).T_tgt_src
         start = timer("refine", start)
 
     residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
@@ -297,7 +317,9 @@ def register_clouds(
     t_src = time.perf_counter()
     tgt = extractor(points_tgt, label=labels[1])
     t_tgt = time.perf_counter()
-    result = estimate_transform(src, tgt, config, extractor.voxel_size)
+    result = estimate_transform(
+        src, tgt, config, extractor.voxel_size, clouds=(points_src, points_tgt)
+    )
     timings = {"features_src": t_src - start, "features_tgt": t_tgt - t_src, **result.timings}
     timings["total"] = time.perf_counter() - start
     return result._replace(timings=timings)
