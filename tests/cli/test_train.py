@@ -31,6 +31,7 @@ def test_help_lists_the_options():
         "--resume",
         "--quiet",
         "--val-dir",
+        "--init-weights",
     ):
         assert flag in result.output
 
@@ -232,3 +233,66 @@ def test_out_folder_with_other_files_is_refused(tmp_path):
     assert result.exit_code == 1
     assert str(out) in result.stderr and "notes.txt" in result.stderr
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def _weights_file(path, seed, voxel_size=0.025):
+    from byoc_cli.pipeline.weights import init_weights, save_weights
+
+    encoder, meta = init_weights("compact", seed, voxel_size)
+    save_weights(path, encoder, meta)
+    return path
+
+
+def _geo_args(shared_data, run, *extra):
+    data = shared_data / "rgbd" / "tum_fr1_xyz"
+    return [
+        "--rgbd-dir", str(data), "--variant", "byoc-geo", "--steps", "1", "--batch-size", "1",
+        "--view-spacing", "2", "--val-every", "0", "--num-workers", "0", "--quiet",
+        "--device", "cpu", "--out", str(run), *extra,
+    ]  # fmt: skip
+
+
+def test_init_weights_start_the_geometric_encoder_from_a_file(shared_data, tmp_path):
+    import hashlib
+
+    import torch
+
+    from byoc_cli.pipeline.weights import load_weights
+
+    start = _weights_file(tmp_path / "start.safetensors", seed=5)
+    # a learning rate so small that one step leaves the weights where they started
+    tiny = ["--lr", "1e-12"]
+    result = _run(_geo_args(shared_data, tmp_path / "a", "--init-weights", str(start), *tiny))
+    assert result.exit_code == 0, result.stderr
+    plain = _run(_geo_args(shared_data, tmp_path / "b", *tiny))
+    assert plain.exit_code == 0, plain.stderr
+    ref = load_weights(start).encoder.state_dict()
+    tuned = load_weights(tmp_path / "a" / "weights.safetensors")
+    fresh = load_weights(tmp_path / "b" / "weights.safetensors").encoder.state_dict()
+    floats = [k for k, v in ref.items() if v.is_floating_point() and "running" not in k]
+    assert all(torch.allclose(tuned.encoder.state_dict()[k], ref[k], atol=1e-6) for k in floats)
+    assert not all(torch.allclose(fresh[k], ref[k], atol=1e-3) for k in floats)
+    recorded = tuned.metadata["training"]["init_weights"]
+    assert recorded == {
+        "file": str(start),
+        "sha256": hashlib.sha256(start.read_bytes()).hexdigest(),
+    }
+    saved = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert saved["config"]["init_weights"] == str(start)
+
+
+@pytest.mark.parametrize("case", ["missing", "voxel", "no_geometric"])
+def test_bad_init_weights_are_exit_1_naming_the_file(shared_data, tmp_path, case):
+    if case == "missing":
+        path, extra, phrase = tmp_path / "none.safetensors", [], "no such file"
+    elif case == "voxel":
+        path = _weights_file(tmp_path / "w5.safetensors", seed=1, voxel_size=0.05)
+        extra, phrase = [], "voxel size"
+    else:
+        path = _weights_file(tmp_path / "w.safetensors", seed=1)
+        extra, phrase = ["--variant", "byoc-vis"], "no geometric encoder"
+    result = _run(_geo_args(shared_data, tmp_path / "run", "--init-weights", str(path), *extra))
+    assert result.exit_code == 1, result.stderr
+    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error")]
+    assert len(lines) == 1 and str(path) in lines[0] and phrase in lines[0], result.stderr
+    assert not (tmp_path / "run" / "weights.safetensors").exists()

@@ -105,6 +105,29 @@ def test_resume_is_exact_and_reuses_the_pair_cache(sequence_copies, tmp_path):
     assert second.last_loss is not None and second.last_loss > 0
 
 
+def test_fine_tuning_starts_from_the_shipped_weights_and_resume_does_not_reload_them(
+    sequence_copies, tmp_path
+):
+    from byoc_cli.pipeline.default_weights import default_weights_path
+    from byoc_cli.pipeline.weights import load_weights
+
+    data, _ = sequence_copies
+    shipped = load_weights(default_weights_path())
+    # one step at a vanishing learning rate: the exported encoder is the shipped one
+    tuned = train(_config(data, tmp_path / "tuned", steps=1, lr=1e-12, init_weights="shipped"))
+    got = load_weights(tuned.weights_path)
+    ref = shipped.encoder.state_dict()
+    for name, value in got.encoder.state_dict().items():
+        if value.is_floating_point() and "running" not in name:
+            assert torch.allclose(value, ref[name], atol=1e-5), name
+    assert got.metadata["training"]["init_weights"]["sha256"] == shipped.file_sha256
+    # resumed runs continue from their checkpoint, not from the initial weights again
+    straight = train(_config(data, tmp_path / "straight", init_weights="shipped"))
+    train(_config(data, tmp_path / "resumed", steps=2, init_weights="shipped"))
+    resumed = train(resume_config(tmp_path / "resumed", {"steps": 4}), resume=True)
+    _assert_identical(straight.weights_path, resumed.weights_path)
+
+
 def test_cli_self_posed_run_with_validation(shared_data, tmp_path):
     from click.testing import CliRunner
 

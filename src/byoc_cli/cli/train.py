@@ -219,6 +219,12 @@ _SWITCHES = (
 )
 @choice_option("--variant", choices=list(VARIANTS), help="Model variant [default: byoc].")
 @click.option("--arch", help="Geometric encoder: compact | minkunet34c [default: compact].")
+@click.option(
+    "--init-weights",
+    metavar="FILE|shipped",
+    help="Start the geometric encoder from these weights instead of a random initialisation "
+    "(fine-tuning; 'shipped': the weights that ship with byoc). Same --arch and --voxel-size.",
+)
 @apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[:2]))
 @float_option("--lr", help="Adam learning rate [default: 1e-4].")
 @click.option(

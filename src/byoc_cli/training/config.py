@@ -81,6 +81,10 @@ class TrainConfig:
         crop_radius: ``self-posed``: both views cut to a ball of this radius (m); 0 = off.
         pairs_from: ``self-posed``: an earlier run folder whose self-posed pairs are reused
             for the same sequences made with the same settings (None: estimate them).
+        init_weights: a weights file (or ``shipped``: the weights that ship with the package)
+            the geometric encoder starts from instead of ``seed``'s random initialisation
+            (fine-tuning); same architecture. Only a new run reads it: ``resume`` continues
+            from the checkpoint.
     """
 
     rgbd_dir: tuple[str, ...] = ()
@@ -120,6 +124,7 @@ class TrainConfig:
     pair_gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
     crop_radius: float = 0.0
     pairs_from: str | None = None
+    init_weights: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "pair_gaps", tuple(int(g) for g in self.pair_gaps))

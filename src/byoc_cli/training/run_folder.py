@@ -143,4 +143,71 @@ def write_encoder(
     )
     if recipe is not None:
         meta["training"]["recipe"] = recipe
+    if config.init_weights:
+        meta["training"]["init_weights"] = _describe_initial_weights(config)
     return save_weights(path, model, meta, dtype=dtype)
+
+
+def _describe_initial_weights(config: TrainConfig) -> dict[str, Any]:
+    """``{"file": ..., "sha256": ...}`` of the weights a run started from (sha256 None when
+    the file is gone by the time the run exports)."""
+    import hashlib
+
+    path = initial_weights_path(config)
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        digest = None
+    return {"file": config.init_weights, "sha256": digest}
+
+
+#: ``init_weights`` value that names the weights shipped with the package
+SHIPPED = "shipped"
+
+
+def initial_weights_path(config: TrainConfig) -> Path | None:
+    """The file ``config.init_weights`` names (``shipped``: the package's), or None."""
+    if not config.init_weights:
+        return None
+    if config.init_weights == SHIPPED:
+        from byoc_cli.pipeline.default_weights import default_weights_path
+
+        path = default_weights_path()
+        if path is None:
+            raise InputError(SHIPPED, "init_weights: this installation ships no weights")
+        return path
+    return Path(config.init_weights)
+
+
+def load_initial_weights(encoder: torch.nn.Module, config: TrainConfig) -> str | None:
+    """Copy the weights of ``config.init_weights`` into ``encoder`` (a fresh run's start).
+
+    Args:
+        encoder: the geometric encoder built for ``config.arch``.
+        config: the run's settings.
+
+    Returns:
+        The SHA-256 of the file read, or None when ``config.init_weights`` is unset.
+
+    Raises:
+        WeightsError: the file is missing or not a valid weights file.
+        InputError: its architecture is not ``config.arch`` or its voxel size differs.
+    """
+    path = initial_weights_path(config)
+    if path is None:
+        return None
+    from byoc_cli.pipeline.weights import load_weights
+
+    loaded = load_weights(path)
+    arch = loaded.metadata.get("architecture")
+    if arch != config.arch or loaded.encoder.config != encoder.config:
+        raise InputError(path, f"init_weights: architecture {arch!r} is not --arch {config.arch!r}")
+    voxel = float(loaded.metadata.get("voxel_size", config.voxel_size))
+    if not math.isclose(voxel, config.voxel_size, rel_tol=1e-6):
+        raise InputError(
+            path,
+            f"init_weights: trained at voxel size {voxel:g} m, this run uses "
+            f"{config.voxel_size:g} m (set --voxel-size {voxel:g})",
+        )
+    encoder.load_state_dict(loaded.encoder.state_dict())
+    return loaded.file_sha256

@@ -204,6 +204,7 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     from byoc_cli.training.run_folder import (
         CONFIG_FILE,
         WEIGHTS_FILE,
+        load_initial_weights,
         truncate_metrics,
         write_run_config,
     )
@@ -239,6 +240,8 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
             optimizer.load_state_dict(state["optimizer"])
             step = int(state["step"])
             restore_rng_state(state["rng"][0], generators)
+    if step == 0:
+        load_initial_weights(encoder, config)
     metrics_path = run_dir / METRICS_FILE
     truncate_metrics(metrics_path, step)
     result = TrainResult(run_dir, None, None, step)

@@ -45,6 +45,7 @@ from byoc_cli.training.run_folder import (
     CONFIG_FILE,
     WEIGHTS_FILE,
     export_weights,
+    load_initial_weights,
     read_run_config,
     resume_config,
     truncate_metrics,
@@ -260,6 +261,13 @@ def _train(
                     stacklevel=2,
                 )
             log.info("resuming %s at step %d", run_dir, step)
+    if step == 0 and config.init_weights:
+        if model.geometric is None:
+            raise InputError(
+                config.init_weights,
+                f"init_weights: --variant {config.variant} has no geometric encoder",
+            )
+        load_initial_weights(model.geometric, config)
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_run_config(run_dir, config, {"world_size": info.world_size, "data": data_names})
