@@ -6,19 +6,20 @@ Usage::
         [--columns byoc byoc-random fpfh fpfh-2.5cm] [--weights W ...] [--table-only]
 
 Runs, for every pair set, the ``byoc eval-pairs`` / ``byoc eval-fmr`` commands it prints
-(one JSON per command in ``--out``; a JSON already there is reused, so columns can be run at
-different times), then prints the Markdown table of the README: rotation accuracy at 5 deg
-and translation accuracy at 10 cm on the RGB-D pair sets; FMR, corr-FMR and registration
-recall (official) on the fragment sets. ``--weights`` adds a column per file (e.g. the best
-paper-recipe weights). Pair sets: ``tum_fr1_desk_full`` at spacing 10 and 20,
-``tum_fr3_cabinet`` at spacing 2, ``realsense_tabletop`` at spacing 5, the fragments made
-from ``tum_fr1_desk_full`` (``byoc make-fragments ... --frames-per-fragment 25``) and the
-3DMatch sample.
+(one JSON per command in ``--out``; a JSON already there is reused if it was made with the
+same weights file, so columns can be run at different times), then prints the Markdown table
+of the README: rotation accuracy at 5 deg and translation accuracy at 10 cm on the RGB-D
+pair sets; FMR, corr-FMR and registration recall (official) on the fragment sets.
+``--weights`` adds a column per file (e.g. the best paper-recipe weights). Pair sets:
+``tum_fr1_desk_full`` at spacing 10 and 20, ``tum_fr3_cabinet`` at spacing 2,
+``realsense_tabletop`` at spacing 5, the fragments made from ``tum_fr1_desk_full`` (``byoc
+make-fragments ... --frames-per-fragment 25``) and the 3DMatch sample.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shlex
 import subprocess
@@ -51,8 +52,33 @@ def _slug(column: str) -> str:
     return Path(column).stem if column.endswith(".safetensors") else column
 
 
-def _run(command: list[str], out: Path) -> dict:
+def _weights_sha256(column: str) -> str | None:
+    """SHA-256 of the weights file a learned column uses (None: FPFH and the random encoder)."""
+    if column in ("fpfh", "fpfh-2.5cm", "byoc-random"):
+        return None
+    if column == "byoc":
+        from byoc_cli.pipeline.default_weights import default_weights_path
+
+        path = default_weights_path()
+    else:
+        path = Path(column)
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _reusable(out: Path, sha256: str | None) -> bool:
+    """A JSON of an earlier run counts only if it was made with the same weights file."""
     if not out.exists():
+        return False
+    if sha256 is None:
+        return True
+    methods = json.loads(out.read_text()).get("methods", [])
+    return all(m.get("features_info", {}).get("file_sha256") == sha256 for m in methods)
+
+
+def _run(command: list[str], out: Path, sha256: str | None = None) -> dict:
+    if not _reusable(out, sha256):
+        if out.exists():
+            print(f"{out.name}: made with other weights, measured again", file=sys.stderr)
         print("$ " + shlex.join(command), file=sys.stderr, flush=True)
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
     return json.loads(out.read_text())
@@ -95,10 +121,10 @@ def main() -> int:
                 str(out),
                 "--quiet",
             ]
-            if args.table_only and not out.exists():
+            if args.table_only and not _reusable(out, _weights_sha256(column)):
                 cells.append("-")
                 continue
-            r = _run(command, out)["results"][method]
+            r = _run(command, out, _weights_sha256(column))["results"][method]
             cells.append(
                 f"{r['rotation_deg']['accuracy_percent']['5']:.1f} / "
                 f"{r['translation_cm']['accuracy_percent']['10']:.1f}"
@@ -119,10 +145,10 @@ def main() -> int:
             extra, method = _column_args(column)
             out = args.out / f"fmr-{Path(root).name}-{_slug(column)}.json"
             command = ["byoc", "eval-fmr", str(root), *gt, *extra, "--json", str(out), "--quiet"]
-            if args.table_only and not out.exists():
+            if args.table_only and not _reusable(out, _weights_sha256(column)):
                 cells.append("-")
                 continue
-            r = _run(command, out)["results"][method]
+            r = _run(command, out, _weights_sha256(column))["results"][method]
             cells.append(
                 f"{100 * r['fmr']['pooled']:.1f} / {100 * r['corr_fmr']['pooled']:.1f} / "
                 f"{100 * r['registration_recall']['pooled']:.1f}"
