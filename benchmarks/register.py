@@ -117,14 +117,17 @@ def bench_open3d(src: np.ndarray, tgt: np.ndarray, voxel: float, repeats: int) -
 
 def peak_rss_of_command(src: Path, tgt: Path, weights: Path) -> float:
     """Peak RSS (MB) of a `byoc register` subprocess, via the child's rusage."""
-    code = (
-        "import sys; from byoc_cli.cli.main import cli; "
-        f"sys.argv=['byoc','register','{src}','{tgt}','--weights','{weights}','-o','/dev/null']; "
-        "cli()"
-    )
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    subprocess.run([sys.executable, "-c", code], check=True)
-    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    # `register` refuses to write over a device such as /dev/null: a temporary T file
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "T.txt"
+        code = (
+            "import sys; from byoc_cli.cli.main import cli; "
+            f"sys.argv=['byoc','register','{src}','{tgt}','--weights','{weights}','-o','{out}']; "
+            "cli()"
+        )
+        before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        subprocess.run([sys.executable, "-c", code], check=True)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return max(before, after) / 1024.0
 
 
