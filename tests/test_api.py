@@ -139,3 +139,30 @@ def test_multiscale_refinement_runs_on_the_full_cloud_and_with_kept_points_alone
     )
     assert np.abs(kept.T_tgt_src - T).max() < 0.05
     assert not np.array_equal(kept.T_tgt_src, full.T_tgt_src)
+
+
+def test_a_cloud_refined_in_several_pairs_is_prepared_once(monkeypatch):
+    import byoc_cli.pipeline.refine as refine
+
+    built = []
+    original = refine.RefineCloud.target
+
+    def counting(self, level):
+        if level not in self._targets:
+            built.append((id(self), level))
+        return original(self, level)
+
+    monkeypatch.setattr(refine.RefineCloud, "target", counting)
+    registrar = byoc_cli.Registrar("fpfh")
+    a, (b, _), (c, _) = _cube(2), _moved(_cube(3)), _moved(_cube(4))
+    fa, fb, fc = registrar.extract(a), registrar.extract(b), registrar.extract(c)
+    first = registrar.match(fa, fb, refine="multiscale")
+    levels = len(built)
+    assert levels == len(refine.LEVELS)  # b's levels as a target
+    again = registrar.match(fa, fb, refine="multiscale")
+    assert len(built) == levels  # nothing rebuilt
+    assert np.array_equal(first.T_tgt_src, again.T_tgt_src)
+    registrar.match(fc, fb, refine="multiscale")
+    assert len(built) == levels  # b is the target again: reused
+    registrar.match(fb, fc, refine="multiscale")
+    assert len(built) == 2 * levels  # c as a target: built once

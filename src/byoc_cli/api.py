@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import time
 import warnings
+from collections import OrderedDict
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -78,10 +79,32 @@ class Registrar:
         self.weights_info: dict[str, Any] | None = None
         self.extractor = self._make_extractor(weights, voxel_size)
         self.voxel_size = float(self.extractor.voxel_size)
+        # clouds prepared for multiscale refinement, most recent last: a cloud refined in
+        # several pairs (register-batch) builds its levels, normals and search index once
+        self._refine_clouds: OrderedDict[int, tuple[np.ndarray, Any]] = OrderedDict()
 
     @property
     def weights_sha256(self) -> str | None:
         return self.weights_info["sha256"] if self.weights_info else None
+
+    #: clouds whose refinement levels are kept
+    REFINE_CACHE = 8
+
+    def _refine_cloud(self, feats: Features):
+        """The :class:`~byoc_cli.pipeline.refine.RefineCloud` of ``feats.cloud`` (kept for
+        the ``REFINE_CACHE`` most recently used clouds)."""
+        from byoc_cli.pipeline.refine import RefineCloud
+
+        key = id(feats.cloud)
+        hit = self._refine_clouds.get(key)
+        if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == feats.voxel_size:
+            self._refine_clouds.move_to_end(key)
+            return hit[1]
+        prepared = RefineCloud(feats.cloud, feats.voxel_size)
+        self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: the id stays its
+        while len(self._refine_clouds) > self.REFINE_CACHE:
+            self._refine_clouds.popitem(last=False)
+        return prepared
 
     def _make_extractor(self, weights: Any, voxel_size: float | None):
         from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
@@ -207,7 +230,7 @@ class Registrar:
 
         full = None
         if src.cloud is not None and tgt.cloud is not None:
-            full = (torch.from_numpy(src.cloud), torch.from_numpy(tgt.cloud))
+            full = (self._refine_cloud(src), self._refine_cloud(tgt))
         result = estimate_transform(cloud(src), cloud(tgt), config, src.voxel_size, full)
         T = result.T_tgt_src.clone()
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s

@@ -13,7 +13,7 @@ from byoc_cli.geometry.transforms import (
     invert_transform,
     make_transform,
 )
-from byoc_cli.pipeline.refine import refine_multiscale
+from byoc_cli.pipeline.refine import RefineCloud, refine_multiscale
 
 pytest.importorskip("open3d")
 
@@ -77,3 +77,17 @@ def test_too_few_points_return_the_start():
     start[0, 3] = 0.1
     out = refine_multiscale(pts, pts, start, voxel_size=0.025)
     assert torch.equal(out.T_tgt_src, start)
+
+
+def test_prepared_clouds_give_the_same_result_and_check_the_voxel(generator):
+    tgt = _boxes(20_000, ROOM, generator)
+    src = _boxes(20_000, ROOM, generator)
+    start = torch.eye(4, dtype=torch.float64)
+    start[:3, 3] = torch.tensor([0.03, -0.02, 0.01])
+    direct = refine_multiscale(src, tgt, start, voxel_size=0.025)
+    prepared = RefineCloud(src, 0.025), RefineCloud(tgt.numpy(), 0.025)
+    for _ in range(2):  # the second run uses the levels the first one built
+        again = refine_multiscale(*prepared, start, voxel_size=0.025)
+        assert torch.equal(again.T_tgt_src, direct.T_tgt_src) and again.rank == direct.rank
+    with pytest.raises(ValueError, match="voxel"):
+        refine_multiscale(prepared[0], prepared[1], start, voxel_size=0.05)

@@ -13,6 +13,7 @@ coarse for the finest level (README, "Measured levers").
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -54,24 +55,65 @@ def _downsample(o3d, points: np.ndarray, size: float):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(size)
 
 
-def _source_level(o3d, points: np.ndarray, size: float) -> np.ndarray:
-    """``(K, 3)`` voxel centres, every s-th one so that at most MAX_SOURCE_POINTS remain."""
-    p = np.asarray(_downsample(o3d, points, size).points)
-    return p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
+def _level_geometry(voxel_size: float) -> list[tuple[float, float, float]]:
+    """``(voxel, correspondence distance, normal radius)`` per level, in metres."""
+    out = []
+    for voxel_factor, dist_factor in LEVELS:
+        size = voxel_factor * voxel_size
+        out.append((size, dist_factor * voxel_size, max(2.0 * size, NORMAL_RADIUS * voxel_size)))
+    return out
 
 
-def _target_level(o3d, points: np.ndarray, size: float, radius: float):
-    """Voxel centres ``(M, 3)`` and their unit normals ``(M, 3)``."""
-    cloud = _downsample(o3d, points, size)
-    cloud.estimate_normals(
-        o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=NORMAL_MAX_NN)
-    )
-    return np.asarray(cloud.points), np.asarray(cloud.normals)
+class RefineCloud:
+    """A cloud prepared for :func:`refine_multiscale`, level by level, on first use.
+
+    As a source a level is its voxel centres (every s-th one, at most ``MAX_SOURCE_POINTS``);
+    as a target, its voxel centres, their unit normals and a nearest-neighbour index. Each is
+    built once and kept: ``register-batch`` refines every fragment in several pairs.
+
+    Args:
+        points: ``(N, 3)`` points (metres), a tensor or an array.
+        voxel_size: the feature voxel ``v`` the levels scale with.
+    """
+
+    def __init__(self, points: torch.Tensor | np.ndarray, voxel_size: float) -> None:
+        if isinstance(points, torch.Tensor):
+            points = points.detach().double().cpu().numpy()
+        self.points = np.asarray(points, dtype=np.float64)
+        self.voxel_size = float(voxel_size)
+        self.levels = _level_geometry(self.voxel_size)
+        self._sources: dict[int, np.ndarray] = {}
+        self._targets: dict[int, tuple[np.ndarray, np.ndarray, object]] = {}
+
+    def source(self, level: int) -> np.ndarray:
+        """``(K, 3)`` source points of ``level``."""
+        if level not in self._sources:
+            p = np.asarray(_downsample(_open3d(), self.points, self.levels[level][0]).points)
+            self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
+        return self._sources[level]
+
+    def target(self, level: int) -> tuple[np.ndarray, np.ndarray, object]:
+        """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and an Open3D
+        nearest-neighbour search over them (None when there are too few points)."""
+        if level not in self._targets:
+            o3d = _open3d()
+            size, _, radius = self.levels[level]
+            cloud = _downsample(o3d, self.points, size)
+            cloud.estimate_normals(
+                o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=NORMAL_MAX_NN)
+            )
+            q, n = np.asarray(cloud.points), np.asarray(cloud.normals)
+            search = None
+            if len(q) >= MIN_CORRESPONDENCES:
+                search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q.astype(np.float32)))
+                search.knn_index()
+            self._targets[level] = (q, n, search)
+        return self._targets[level]
 
 
 def refine_multiscale(
-    points_src: torch.Tensor,
-    points_tgt: torch.Tensor,
+    points_src: torch.Tensor | RefineCloud,
+    points_tgt: torch.Tensor | RefineCloud,
     T_init: torch.Tensor,
     voxel_size: float,
     degeneracy: float = DEGENERACY,
@@ -80,8 +122,9 @@ def refine_multiscale(
     """Refine ``T_init`` by coarse-to-fine point-to-plane ICP.
 
     Args:
-        points_src: ``(N, 3)`` source points (full resolution, metres).
-        points_tgt: ``(M, 3)`` target points.
+        points_src: ``(N, 3)`` source points (full resolution, metres), or a
+            :class:`RefineCloud` of them (prepared levels are reused).
+        points_tgt: ``(M, 3)`` target points, or a :class:`RefineCloud`.
         T_init: ``(4, 4)`` initial ``T_tgt_src`` (from feature matching).
         voxel_size: the feature voxel ``v``; the levels scale with it.
         degeneracy, sliding: see :func:`point_to_plane_step`; both 0 = plain
@@ -93,6 +136,7 @@ def refine_multiscale(
 
     Raises:
         DependencyError: open3d cannot be imported (the message names ``--refine none``).
+        ValueError: a :class:`RefineCloud` was prepared for another voxel size.
     """
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny tensors: extra threads only wait on each other (10x slower)
@@ -112,24 +156,29 @@ def _open3d():
         ) from exc
 
 
+def _prepared(points, voxel_size: float) -> RefineCloud:
+    if isinstance(points, RefineCloud):
+        if not math.isclose(points.voxel_size, voxel_size, rel_tol=1e-9):
+            raise ValueError(
+                f"RefineCloud prepared for voxel {points.voxel_size:g} m, "
+                f"refining at {voxel_size:g} m"
+            )
+        return points
+    return RefineCloud(points, voxel_size)
+
+
 def _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding) -> Refinement:
-    o3d = _open3d()
-    src = points_src.detach().double().cpu().numpy()
-    tgt = points_tgt.detach().double().cpu().numpy()
+    src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
     T = T_init.detach().double().cpu().numpy().copy()
     rank, fitness = 0, 0.0
-    for voxel_factor, dist_factor in LEVELS:
-        size, dist = voxel_factor * voxel_size, dist_factor * voxel_size
-        radius = max(2.0 * size, NORMAL_RADIUS * voxel_size)
-        p = _source_level(o3d, src, size)
-        q, n = _target_level(o3d, tgt, size, radius)
-        if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
+    for level, (_, dist, _) in enumerate(src.levels):
+        p = src.source(level)
+        q, n, search = tgt.target(level)
+        if len(p) < MIN_CORRESPONDENCES or search is None:
             break
-        search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q.astype(np.float32)))
-        search.knn_index()
         for _ in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
-            idx, d2 = search.knn_search(o3d.core.Tensor(moved.astype(np.float32)), 1)
+            idx, d2 = search.knn_search(_open3d().core.Tensor(moved.astype(np.float32)), 1)
             ok = d2.numpy().ravel() <= dist**2
             fitness = float(ok.mean())
             if ok.sum() < MIN_CORRESPONDENCES:
