@@ -19,6 +19,7 @@ make-fragments ... --frames-per-fragment 25``) and the 3DMatch sample.
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
 import shlex
@@ -52,6 +53,7 @@ def _slug(column: str) -> str:
     return Path(column).stem if column.endswith(".safetensors") else column
 
 
+@functools.cache
 def _weights_sha256(column: str) -> str | None:
     """SHA-256 of the weights file a learned column uses (None: FPFH and the random encoder)."""
     if column in ("fpfh", "fpfh-2.5cm", "byoc-random"):

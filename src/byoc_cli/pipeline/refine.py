@@ -169,6 +169,7 @@ def _prepared(points, voxel_size: float) -> RefineCloud:
 
 def _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding) -> Refinement:
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
+    o3d = _open3d()
     T = T_init.detach().double().cpu().numpy().copy()
     rank, fitness = 0, 0.0
     for level, (_, dist, _) in enumerate(src.levels):
@@ -178,7 +179,7 @@ def _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding) -> 
             break
         for _ in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
-            idx, d2 = search.knn_search(_open3d().core.Tensor(moved.astype(np.float32)), 1)
+            idx, d2 = search.knn_search(o3d.core.Tensor(moved.astype(np.float32)), 1)
             ok = d2.numpy().ravel() <= dist**2
             fitness = float(ok.mean())
             if ok.sum() < MIN_CORRESPONDENCES:
