@@ -146,7 +146,11 @@ def _self_posed(args, arch, samples, seqs, order, device, extra=""):
     from byoc_cli.models.encoder import build_encoder
     from byoc_cli.training.config import TrainConfig
     from byoc_cli.training.pseudo_poses import frame_points
-    from byoc_cli.training.self_posed import CACHE_VOXEL_FACTOR, training_step
+    from byoc_cli.training.self_posed import (
+        CACHE_VOXEL_FACTOR,
+        build_optimizer,
+        training_step,
+    )
     from byoc_cli.training.self_posed_data import cache_frame
 
     del samples
@@ -164,7 +168,7 @@ def _self_posed(args, arch, samples, seqs, order, device, extra=""):
         frames[i] = cache_frame(frame_points(seq, i), CACHE_VOXEL_FACTOR * config.voxel_size)
     poses = {i: seq.pose(i) for i in frames}
     encoder = build_encoder(arch).to(device).train()
-    opt = torch.optim.Adam(encoder.parameters(), lr=1e-3)
+    opt = build_optimizer(encoder, config)
     gen = torch.Generator().manual_seed(0)
     times = []
     for k in range(steps):

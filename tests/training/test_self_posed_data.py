@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 from byoc_cli.geometry.voxel import voxelize
 from byoc_cli.training.self_posed_data import (
     AugmentConfig,
+    CachedFrame,
     cache_frame,
+    crop_pair,
     first_point_per_voxel,
     make_pair_views,
     match_views,
@@ -107,3 +109,72 @@ def test_make_pair_views_correspondences_hold_under_augmentation():
         torch.Generator().manual_seed(0),
     )
     assert torch.equal(again.matches, pair.matches)
+
+
+def _known_pair(seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Frame i: a 2 m x 2 m wall (x in [0, 2]); frame j: the wall's part x in [1.8, 4] seen
+    from a pose ``T_i_j`` (only 20 cm of overlap). Returns points_i, points_j, T_i_j."""
+    rng = np.random.default_rng(seed)
+    wall = np.stack([rng.uniform(0, 4, 40000), rng.uniform(0, 2, 40000), np.zeros(40000)], 1)
+    wall[:, 2] = 0.05 * np.sin(3 * wall[:, 0])
+    gen = torch.Generator().manual_seed(seed)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = random_rotation(90.0, gen)
+    T[:3, 3] = torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64)
+    in_i = torch.from_numpy(wall[wall[:, 0] <= 2.0]).float()
+    j_in_i = torch.from_numpy(wall[wall[:, 0] >= 1.8])
+    inv = torch.linalg.inv(T)
+    in_j = (j_in_i @ inv[:3, :3].T + inv[:3, 3]).float()
+    return in_i, in_j, T
+
+
+def _to_i(points_j: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    T = T.to(torch.float32)
+    return points_j @ T[:3, :3].T + T[:3, 3]
+
+
+def test_crop_pair_keeps_the_same_ball_in_both_frames_inside_the_overlap():
+    for seed in range(12):
+        points_i, points_j, T = _known_pair(seed)
+        gen = torch.Generator().manual_seed(seed)
+        ci, cj = crop_pair(CachedFrame(points_i), CachedFrame(points_j), T, 0.1, gen)
+        # the centre is a point of i within 2 cm of j, so it lies at x >= 1.78 and both
+        # crops are non-empty
+        assert len(ci.points) > 0 and len(cj.points) > 0
+        assert float(ci.points[:, 0].min()) > 1.78 - 0.1 - 1e-4
+        # both crops are balls of the same place: the j crop, in frame i, lies within 0.2 m
+        # of the i crop's mean (both within 0.1 m of the centre)
+        j_in_i = _to_i(cj.points, T)
+        assert float((j_in_i - ci.points.mean(dim=0)).norm(dim=1).max()) < 0.2 + 1e-4
+
+
+def test_crop_pair_is_exactly_a_ball_around_one_point_of_i():
+    points_i, points_j, T = _known_pair(3)
+    gen = torch.Generator().manual_seed(0)
+    ci, cj = crop_pair(CachedFrame(points_i), CachedFrame(points_j), T, 0.25, gen)
+    j_in_i = _to_i(points_j, T)
+    # find the centre: the point of i whose 0.25 m ball gives exactly the kept set
+    kept = {tuple(p) for p in ci.points.tolist()}
+    found = False
+    for c in ci.points:
+        ball_i = (points_i - c).norm(dim=1) < 0.25
+        if {tuple(p) for p in points_i[ball_i].tolist()} != kept:
+            continue
+        ball_j = (j_in_i - c).norm(dim=1) < 0.25
+        # points on the ball's surface may fall either way through float rounding
+        assert abs(int(ball_j.sum()) - len(cj.points)) <= 2
+        assert float((j_in_i[ball_j] - c).norm(dim=1).min()) < 0.02
+        found = True
+        break
+    assert found
+
+
+def test_crop_pair_without_overlap_or_points_in_j_still_crops_i():
+    points_i, _, T = _known_pair(1)
+    far = points_i + 10.0
+    gen = torch.Generator().manual_seed(0)
+    ci, cj = crop_pair(CachedFrame(points_i), CachedFrame(far), torch.eye(4), 0.2, gen)
+    assert len(ci.points) > 0 and len(cj.points) == 0
+    empty = CachedFrame(torch.zeros(0, 3))
+    ci, cj = crop_pair(CachedFrame(points_i), empty, T, 0.2, gen)
+    assert len(ci.points) > 0 and len(cj.points) == 0
