@@ -128,7 +128,10 @@ def test_fine_tuning_starts_from_the_shipped_weights_and_resume_does_not_reload_
     _assert_identical(straight.weights_path, resumed.weights_path)
 
 
-def test_cli_self_posed_run_with_validation(shared_data, tmp_path):
+@pytest.mark.parametrize("quiet", [True, False])
+def test_cli_self_posed_run_with_validation(shared_data, tmp_path, quiet):
+    # without --quiet the progress bar shows the loss (it once looked up the paper
+    # variants' three losses and crashed at the first step)
     from click.testing import CliRunner
 
     from byoc_cli.cli.main import cli
@@ -157,7 +160,7 @@ def test_cli_self_posed_run_with_validation(shared_data, tmp_path):
             str(toml),
             "--out",
             str(tmp_path / "run"),
-            "--quiet",
+            *(["--quiet"] if quiet else []),
         ],
     )
     assert result.exit_code == 0, result.output

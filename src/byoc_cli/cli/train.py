@@ -83,7 +83,7 @@ class _Display:
             return
         parts = [f"loss {info.losses['loss']:.4f}"]
         for key in ("vis", "geo", "v2g"):
-            value = info.losses[f"loss_{key}"]
+            value = info.losses.get(f"loss_{key}")  # the self-posed variant has one loss
             if value:
                 parts.append(f"{key} {value:.4f}")
         self.progress.update(
