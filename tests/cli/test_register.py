@@ -253,24 +253,27 @@ def test_bad_input_exit_1_one_line_no_output(runner, tmp_path, case):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".") or "tmp" in p.name]
 
 
-def test_default_refinement_without_open3d_says_so_and_none_registers(
+def test_default_register_needs_no_open3d_and_icp_says_it_does(
     runner, random_weights, tmp_path, monkeypatch
 ):
-    # byoc's default refinement needs open3d; without it: one line, exit 1, nothing written,
-    # and --refine none registers with the rest of the pipeline (open3d-free)
+    # the learned default (features, RANSAC, --refine multiscale) is plain PyTorch: it
+    # registers with open3d unimportable; --refine icp (Open3D's ICP) says what is missing
+    # in one line, exit 1, nothing written
     monkeypatch.setitem(sys.modules, "open3d", None)
     src, tgt, _ = _synthetic_pair(tmp_path)
     out, report = tmp_path / "T.txt", tmp_path / "r.json"
     args = ["register", str(src), str(tgt), "--weights", str(random_weights), "-o", str(out)]
     res = runner.invoke(cli, [*args, "--json", str(report)])
-    assert res.exit_code == 1, res.output
-    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("byoc: error")]
-    assert len(lines) == 1, res.stderr
-    assert "open3d" in lines[0] and "--refine none" in lines[0]
-    assert not out.exists() and not report.exists()
-    res = runner.invoke(cli, [*args, "--refine", "none"])
     assert res.exit_code == 0, res.output
     assert read_transform(out).shape == (4, 4)
+    assert json.loads(report.read_text())["refine"] == "multiscale"
+    out.unlink()
+    report.unlink()
+    res = runner.invoke(cli, [*args, "--json", str(report), "--refine", "icp"])
+    assert res.exit_code == 1, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("byoc: error")]
+    assert len(lines) == 1 and "open3d" in lines[0], res.stderr
+    assert not out.exists() and not report.exists()
 
 
 def test_nan_points_dropped_with_warning(runner, tmp_path):

@@ -15,8 +15,6 @@ from byoc_cli.geometry.transforms import (
 )
 from byoc_cli.pipeline.refine import RefineCloud, refine_multiscale
 
-pytest.importorskip("open3d")
-
 
 def _boxes(n: int, boxes, generator: torch.Generator) -> torch.Tensor:
     """``(n, 3)`` points spread over the faces of axis-aligned ``boxes`` ((lo, hi) pairs)."""
@@ -91,3 +89,28 @@ def test_prepared_clouds_give_the_same_result_and_check_the_voxel(generator):
         assert torch.equal(again.T_tgt_src, direct.T_tgt_src) and again.rank == direct.rank
     with pytest.raises(ValueError, match="voxel"):
         refine_multiscale(prepared[0], prepared[1], start, voxel_size=0.05)
+
+
+def test_georeferenced_coordinates_refine_as_well_as_near_the_origin(generator):
+    # UTM-like coordinates (hundreds of km): the grids start at the cloud, not at 0
+    tgt = _boxes(40_000, ROOM, generator)
+    R = axis_angle_to_matrix(torch.tensor([0.0, 0.1, -0.2], dtype=torch.float64))
+    T_true = make_transform(R, torch.tensor([0.1, -0.1, 0.05], dtype=torch.float64))
+    src = apply_transform(invert_transform(T_true), _boxes(40_000, ROOM, generator))
+    nudge = make_transform(
+        axis_angle_to_matrix(torch.tensor([0.0, math.radians(2.0), 0.0], dtype=torch.float64)),
+        torch.tensor([0.03, 0.02, -0.01], dtype=torch.float64),
+    )
+    near = refine_multiscale(src, tgt, nudge @ T_true, voxel_size=0.025)
+    offset = torch.tensor([512_345.0, 4_123_456.0, 310.0], dtype=torch.float64)
+    shift = make_transform(torch.eye(3, dtype=torch.float64), offset)
+    far = refine_multiscale(
+        src + offset,
+        tgt + offset,
+        shift @ nudge @ T_true @ invert_transform(shift),
+        voxel_size=0.025,
+    )
+    back = invert_transform(shift) @ far.T_tgt_src @ shift
+    assert _pose_error(near.T_tgt_src, T_true)[1] < 0.005
+    rot, trans = _pose_error(back, near.T_tgt_src)
+    assert rot < 0.05 and trans < 0.001

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
@@ -38,7 +39,8 @@ def make_transform(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         raise ShapeError(
             f"R must be (..., 3, 3) and t (..., 3), got {tuple(R.shape)}, {tuple(t.shape)}"
         )
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    # torch.broadcast_shapes would import torch.fx's symbolic shapes (sympy): 0.3 s
+    batch = np.broadcast_shapes(tuple(R.shape[:-2]), tuple(t.shape[:-1]))
     T = R.new_zeros(*batch, 4, 4)
     T[..., :3, :3] = R
     T[..., :3, 3] = t.to(R.dtype)

@@ -1,11 +1,17 @@
-"""Coarse-to-fine point-to-plane ICP that holds degenerate directions (Open3D, lazily).
+"""Coarse-to-fine point-to-plane ICP that holds degenerate directions, in plain PyTorch.
 
 The refinement behind ``--refine multiscale`` (the default of learned features): three
 levels of voxel size and correspondence distance, in multiples of the feature voxel ``v``:
 ``(v, 2v)``, ``(v/2, v)``, ``(0.4v, 0.6v)``, each up to 30 Gauss-Newton steps of
-:func:`byoc_cli.fitting.point_to_plane.point_to_plane_step`. Open3D does the voxel grid,
-the normals and the nearest-neighbour search; the step is ours, because Open3D's ICP
-slides along planes (``point_to_plane.py`` says why and what is held).
+:func:`byoc_cli.fitting.point_to_plane.point_to_plane_step` (Open3D's ICP slides along
+planes: ``point_to_plane.py`` says why and what is held). Voxel averages, normals and
+nearest points come from voxel grids (:mod:`byoc_cli.geometry.neighbors`): no k-d tree and
+no open3d, whose import alone took longer than the whole refinement does now.
+
+Correspondences: each source point's 8 nearest target points among the 27 cells of the
+level's voxel around it are gathered once, and again only after a point has moved more
+than half a voxel since; every step takes the nearest of those (within the level's
+correspondence distance).
 
 It runs on the full-resolution input points: the kept points of the feature voxel are too
 coarse for the finest level (README, "Measured levers").
@@ -13,28 +19,46 @@ coarse for the finest level (README, "Measured levers").
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from byoc_cli.errors import DependencyError, require_open3d
 from byoc_cli.fitting.point_to_plane import DEGENERACY, SLIDING, point_to_plane_step
+from byoc_cli.geometry.neighbors import (
+    CellIndex,
+    nearest_candidates,
+    nearest_of,
+    surface_normals,
+    voxel_average,
+)
 
 #: (voxel, correspondence distance) per level, in multiples of the feature voxel size
 LEVELS = ((1.0, 2.0), (0.5, 1.0), (0.4, 0.6))
+#: reach of the nearest-point search per level, in level voxels (cells of the target's
+#: voxel averages, one point each): the first level searches its whole correspondence
+#: distance (2 voxels; it meets the feature estimate's error), the finer ones, which start
+#: where the coarser left off, one voxel (27 cells instead of 125)
+SEARCH_REACH = (2, 1, 1)
 #: Gauss-Newton steps per level at most
 ITERATIONS = 30
-#: normals from at most this many neighbours within max(2 level voxels, NORMAL_RADIUS v)
-NORMAL_MAX_NN = 30
+#: normals from the cells of edge NORMAL_CELL * radius around a point, radius
+#: max(2 level voxels, NORMAL_RADIUS v)
 NORMAL_RADIUS = 1.2
+NORMAL_CELL = 0.5
 #: a level stops when a step moves less than this (radians, and multiples of v)
 TOLERANCE = 4e-4
-#: source points per level at most (an even stride through the voxel centres)
+#: source points per level at most (an even stride through the voxel averages)
 MAX_SOURCE_POINTS = 20_000
 #: fewest correspondences for a step (fewer: the level is skipped)
 MIN_CORRESPONDENCES = 6
+#: nearest target points kept per source point between searches
+CANDIDATES = 8
+#: a new search once a source point has moved this many level voxels since the last
+RESEARCH = 1.0
 
 
 class Refinement(NamedTuple):
@@ -51,10 +75,6 @@ class Refinement(NamedTuple):
     fitness: float
 
 
-def _downsample(o3d, points: np.ndarray, size: float):
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(size)
-
-
 def _level_geometry(voxel_size: float) -> list[tuple[float, float, float]]:
     """``(voxel, correspondence distance, normal radius)`` per level, in metres."""
     out = []
@@ -67,9 +87,10 @@ def _level_geometry(voxel_size: float) -> list[tuple[float, float, float]]:
 class RefineCloud:
     """A cloud prepared for :func:`refine_multiscale`, level by level, on first use.
 
-    As a source a level is its voxel centres (every s-th one, at most ``MAX_SOURCE_POINTS``);
-    as a target, its voxel centres, their unit normals and a nearest-neighbour index. Each is
-    built once and kept: ``register-batch`` refines every fragment in several pairs.
+    As a source a level is its voxel averages (every s-th one, at most
+    ``MAX_SOURCE_POINTS``); as a target, its voxel averages, their unit normals and a cell
+    index over them. Each is built once and kept: ``register-batch`` refines every
+    fragment in several pairs.
 
     Args:
         points: ``(N, 3)`` points (metres), a tensor or an array.
@@ -77,37 +98,35 @@ class RefineCloud:
     """
 
     def __init__(self, points: torch.Tensor | np.ndarray, voxel_size: float) -> None:
-        if isinstance(points, torch.Tensor):
-            points = points.detach().double().cpu().numpy()
-        self.points = np.asarray(points, dtype=np.float64)
+        if not isinstance(points, torch.Tensor):
+            points = torch.from_numpy(np.asarray(points))
+        self.points = points.detach().to(device="cpu", dtype=torch.float64)
         self.voxel_size = float(voxel_size)
         self.levels = _level_geometry(self.voxel_size)
-        self._sources: dict[int, np.ndarray] = {}
-        self._targets: dict[int, tuple[np.ndarray, np.ndarray, object]] = {}
+        self._averages: dict[int, torch.Tensor] = {}
+        self._sources: dict[int, torch.Tensor] = {}
+        self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
 
-    def source(self, level: int) -> np.ndarray:
+    def _average(self, level: int) -> torch.Tensor:
+        if level not in self._averages:
+            self._averages[level] = voxel_average(self.points, self.levels[level][0])
+        return self._averages[level]
+
+    def source(self, level: int) -> torch.Tensor:
         """``(K, 3)`` source points of ``level``."""
         if level not in self._sources:
-            p = np.asarray(_downsample(_open3d(), self.points, self.levels[level][0]).points)
+            p = self._average(level)
             self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
         return self._sources[level]
 
-    def target(self, level: int) -> tuple[np.ndarray, np.ndarray, object]:
-        """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and an Open3D
-        nearest-neighbour search over them (None when there are too few points)."""
+    def target(self, level: int) -> tuple[torch.Tensor, torch.Tensor, CellIndex]:
+        """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and a
+        :class:`CellIndex` over them at the level's voxel."""
         if level not in self._targets:
-            o3d = _open3d()
             size, _, radius = self.levels[level]
-            cloud = _downsample(o3d, self.points, size)
-            cloud.estimate_normals(
-                o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=NORMAL_MAX_NN)
-            )
-            q, n = np.asarray(cloud.points), np.asarray(cloud.normals)
-            search = None
-            if len(q) >= MIN_CORRESPONDENCES:
-                search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(q.astype(np.float32)))
-                search.knn_index()
-            self._targets[level] = (q, n, search)
+            q = self._average(level)
+            n = surface_normals(q, NORMAL_CELL * radius)
+            self._targets[level] = (q, n, CellIndex(q, size))
         return self._targets[level]
 
 
@@ -135,25 +154,9 @@ def refine_multiscale(
         ``MIN_CORRESPONDENCES`` correspondences.
 
     Raises:
-        DependencyError: open3d cannot be imported (the message names ``--refine none``).
         ValueError: a :class:`RefineCloud` was prepared for another voxel size.
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: extra threads only wait on each other (10x slower)
-    try:
-        return _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _open3d():
-    """open3d, or a :class:`DependencyError` that says how to register without it."""
-    try:
-        return require_open3d()
-    except DependencyError as exc:
-        raise DependencyError(
-            f"multiscale refinement: {exc} (or register without it: --refine none)"
-        ) from exc
+    return _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding)
 
 
 def _prepared(points, voxel_size: float) -> RefineCloud:
@@ -167,35 +170,47 @@ def _prepared(points, voxel_size: float) -> RefineCloud:
     return RefineCloud(points, voxel_size)
 
 
+@contextlib.contextmanager
+def _threads(count: int) -> Iterator[None]:
+    """Run the block with ``count`` torch threads."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding) -> Refinement:
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
-    o3d = _open3d()
-    T = T_init.detach().double().cpu().numpy().copy()
+    T = T_init.detach().to(device="cpu", dtype=torch.float64).clone()
     rank, fitness = 0, 0.0
-    for level, (_, dist, _) in enumerate(src.levels):
-        p = src.source(level)
-        q, n, search = tgt.target(level)
-        if len(p) < MIN_CORRESPONDENCES or search is None:
+    for level, (size, dist, _) in enumerate(src.levels):
+        p = src.source(level)  # levels, normals and searches: all threads
+        q, n, index = tgt.target(level)
+        if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
             break
+        anchor, candidates = None, None
         for _ in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
-            idx, d2 = search.knn_search(o3d.core.Tensor(moved.astype(np.float32)), 1)
-            ok = d2.numpy().ravel() <= dist**2
-            fitness = float(ok.mean())
-            if ok.sum() < MIN_CORRESPONDENCES:
+            if anchor is None or float((moved - anchor).abs().max()) > RESEARCH * size:
+                candidates = nearest_candidates(index, moved, CANDIDATES, SEARCH_REACH[level])
+                anchor = moved
+            near = nearest_of(index, moved, candidates)
+            ok = near.distance2 <= dist**2
+            fitness = float(ok.double().mean())
+            if int(ok.sum()) < MIN_CORRESPONDENCES:
                 break
-            j = idx.numpy().ravel()[ok].astype(np.int64)
-            step = point_to_plane_step(
-                torch.from_numpy(moved[ok]),
-                torch.from_numpy(q[j]),
-                torch.from_numpy(n[j]),
-                degeneracy=degeneracy,
-                sliding=sliding,
-            )
-            dT = step.T.numpy()
-            T = dT @ T
+            j = near.index[ok]
+            # tiny tensors: extra threads only wait on each other (10x slower)
+            with _threads(1):
+                step = point_to_plane_step(
+                    moved[ok], q[j], n[j], degeneracy=degeneracy, sliding=sliding
+                )
+            T = step.T @ T
             rank = step.rank
-            angle = np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1.0, 1.0))
-            if angle < TOLERANCE and np.linalg.norm(dT[:3, 3]) < TOLERANCE * voxel_size:
+            dR = step.T[:3, :3]
+            angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(dR)) - 1) / 2)))
+            if angle < TOLERANCE and float(step.T[:3, 3].norm()) < TOLERANCE * voxel_size:
                 break
-    return Refinement(torch.from_numpy(T), rank, fitness)
+    return Refinement(T, rank, fitness)

@@ -1,0 +1,287 @@
+"""Voxel-grid neighbourhoods in plain PyTorch: cell averages, surface normals, near points.
+
+What the multiscale refinement needs without a k-d tree (and without importing open3d,
+whose import alone takes longer than the refinement): clouds thinned to one average point
+per voxel, a normal per point from the points of the surrounding cells, and, for moving
+query points, the nearest points of a cloud among those in the cells around them.
+
+Cells are ``floor((p - origin) / size)`` with the origin on the cloud's lowest cell corner
+(a multiple of ``size``), so georeferenced coordinates (hundreds of kilometres) lose nothing;
+a cell's key packs its three indices into one int64 (:data:`CELL_LIMIT` cells either side
+of the origin per axis). Shapes: points ``(N, 3)`` float64 metres; indices int64.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from byoc_cli.errors import ShapeError
+
+#: cells per axis either side of the origin that a key can hold (2^20 cells of 1 cm: 10 km)
+CELL_LIMIT = 1 << 20
+_BITS = 21
+
+
+def cell_keys(cells: torch.Tensor) -> torch.Tensor:
+    """One int64 key per cell of ``cells (N, 3)`` int64; order of keys = x, then y, then z.
+
+    Raises:
+        ValueError: a cell index is :data:`CELL_LIMIT` or more away from the origin (the
+            cloud is too large for the cell size).
+    """
+    if len(cells) and int(cells.abs().max()) >= CELL_LIMIT - 1:
+        raise ValueError(f"cloud spans more than {CELL_LIMIT} cells from the origin")
+    c = cells + CELL_LIMIT
+    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+
+
+def grid_origin(points: torch.Tensor, size: float) -> torch.Tensor:
+    """``(3,)`` the lowest cell corner of ``points (N, 3)`` on the grid of ``size`` through 0
+    (zeros for no points)."""
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise ShapeError(f"points must be (N, 3), got {tuple(points.shape)}")
+    if len(points) == 0:
+        return points.new_zeros(3)
+    return torch.floor(points.min(dim=0).values / size) * size
+
+
+def _cells(points: torch.Tensor, size: float, origin: torch.Tensor) -> torch.Tensor:
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise ShapeError(f"points must be (N, 3), got {tuple(points.shape)}")
+    return torch.floor((points - origin) / size).to(torch.int64)
+
+
+def neighbor_positions(
+    sorted_keys: torch.Tensor, cells: torch.Tensor, reach: int = 1
+) -> torch.Tensor:
+    """Where the cells within ``reach`` cells (per axis) of each of ``cells (Q, 3)`` are in
+    ``sorted_keys (C,)`` (unique, ascending): ``(Q, (2 reach + 1)^3)`` int64 positions, -1 for
+    empty cells.
+
+    Cells next to each other along z have consecutive keys, so one search per (x, y) column
+    (9, not 27, for reach 1) finds the whole run: the keys ``base - reach .. base + reach``
+    can only sit in the ``2 reach + 1`` places from where ``base - reach`` would go.
+    """
+    width = 2 * reach + 1
+    Q, C = len(cells), len(sorted_keys)
+    if C == 0 or Q == 0:
+        return torch.full((Q, width**3), -1, dtype=torch.int64)
+    span = torch.arange(-reach, reach + 1)
+    columns = torch.stack(torch.meshgrid(span, span, indexing="ij"), dim=-1).reshape(-1, 2)
+    columns = torch.cat([columns, torch.zeros(len(columns), 1, dtype=torch.int64)], dim=1)
+    base = cell_keys((cells[:, None, :] + columns).reshape(-1, 3)).reshape(Q, len(columns))
+    low = torch.searchsorted(sorted_keys, base - reach)  # (Q, columns)
+    places = [(low + i).clamp_max(C - 1) for i in range(width)]
+    found = [sorted_keys[at] for at in places]
+    out = []
+    for dz in range(-reach, reach + 1):
+        wanted = base + dz
+        pos = torch.full_like(low, -1)
+        for at, key in zip(places, found, strict=True):
+            pos = torch.where(key == wanted, at, pos)
+        out.append(pos)
+    return torch.stack(out, dim=2).reshape(Q, -1)
+
+
+def voxel_average(points: torch.Tensor, size: float) -> torch.Tensor:
+    """The average of the points in each occupied cell of ``size``: ``(K, 3)``, in key order.
+
+    Args:
+        points: ``(N, 3)`` points.
+        size: cell edge (metres).
+    """
+    keys = cell_keys(_cells(points, size, grid_origin(points, size)))
+    uniq, inverse = torch.unique(keys, return_inverse=True)
+    sums = torch.zeros(len(uniq), 3, dtype=points.dtype).index_add_(0, inverse, points)
+    counts = torch.bincount(inverse, minlength=len(uniq)).to(points.dtype)
+    return sums / counts[:, None]
+
+
+class CellIndex:
+    """The points of a cloud by cell: sorted keys and, per key, the points in that cell.
+
+    Args:
+        points: ``(N, 3)`` points.
+        size: cell edge (metres).
+    """
+
+    def __init__(self, points: torch.Tensor, size: float) -> None:
+        self.points = points
+        self.size = float(size)
+        self.origin = grid_origin(points, size)
+        # (3, N) float32 offsets from the origin, for distances
+        self.columns = (points - self.origin).T.to(torch.float32).contiguous()
+        keys = cell_keys(_cells(points, size, self.origin))
+        self.order = torch.argsort(keys, stable=True)  # (N,) points sorted by cell
+        sorted_keys = keys[self.order]
+        self.keys, counts = torch.unique_consecutive(sorted_keys, return_counts=True)
+        self.start = torch.cumsum(counts, 0) - counts  # (C,) first position in `order`
+        self.first = self.order[self.start]  # (C,) the first point of each cell
+        self.count = counts  # (C,)
+        self.max_count = int(counts.max()) if len(counts) else 0
+
+    def around(self, queries: torch.Tensor, reach: int = 1) -> torch.Tensor:
+        """Indices of the points in the cells within ``reach`` cells of each query's,
+        ``(Q, (2 reach + 1)^3 m)`` int64, -1 padded (``m`` the most points in one cell).
+        Every point within ``reach * size`` of a query is among them.
+
+        Args:
+            queries: ``(Q, 3)`` points.
+            reach: cells per axis either side.
+        """
+        pos = neighbor_positions(self.keys, _cells(queries, self.size, self.origin), reach)
+        if self.max_count <= 1:  # one point per cell (voxel averages at the cell size)
+            return torch.where(pos >= 0, self.first[pos.clamp_min(0)], -1)
+        found = pos >= 0
+        safe = pos.clamp_min(0)
+        start, count = self.start[safe], torch.where(found, self.count[safe], 0)
+        slots = torch.arange(max(self.max_count, 1))
+        at = start[..., None] + slots  # (Q, 27, m)
+        valid = slots < count[..., None]
+        index = self.order[at.clamp_max(len(self.order) - 1).clamp_min(0)]
+        return torch.where(valid, index, torch.full_like(index, -1)).reshape(len(queries), -1)
+
+
+def _distance2(cells: CellIndex, index: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
+    """``(Q, k)`` float32 squared distances from ``queries (Q, 3)`` to the points ``index
+    (Q, k)`` of ``cells`` (-1 = none: inf), in place one coordinate at a time (float64
+    temporaries of this size cost ten times as much on a CPU)."""
+    safe = index.clamp_min(0)
+    q = (queries - cells.origin).T.to(torch.float32)
+    d2 = cells.columns[0][safe].sub_(q[0][:, None]).square_()
+    for axis in (1, 2):
+        d2 += cells.columns[axis][safe].sub_(q[axis][:, None]).square_()
+    return d2.masked_fill_(index < 0, float("inf"))
+
+
+def nearest_candidates(
+    index: CellIndex, queries: torch.Tensor, k: int, reach: int = 1
+) -> torch.Tensor:
+    """The ``k`` points of ``index`` nearest each query among the cells within ``reach``,
+    nearest first, ``(Q, k)`` int64 (-1 where there are fewer)."""
+    cand = index.around(queries, reach)
+    d2 = _distance2(index, cand, queries)
+    k = min(k, cand.shape[1])
+    near, pick = torch.topk(d2, k, dim=1, largest=False)
+    chosen = cand.gather(1, pick)
+    return torch.where(torch.isfinite(near), chosen, torch.full_like(chosen, -1))
+
+
+class Nearest(NamedTuple):
+    """Nearest of the candidates: ``index (Q,)`` int64 (-1: none) and ``distance2 (Q,)``."""
+
+    index: torch.Tensor
+    distance2: torch.Tensor
+
+
+def nearest_of(index: CellIndex, queries: torch.Tensor, candidates: torch.Tensor) -> Nearest:
+    """For each of ``queries (Q, 3)``, the nearest of its ``candidates (Q, k)`` (indices into
+    ``index.points``, -1 = none); ``distance2`` float32."""
+    best, pick = _distance2(index, candidates, queries).min(dim=1)
+    return Nearest(candidates.gather(1, pick[:, None])[:, 0], best)
+
+
+def surface_normals(points: torch.Tensor, size: float, min_points: int = 8) -> torch.Tensor:
+    """Unit normals ``(N, 3)`` of ``points (N, 3)``: the least-variance direction of the
+    points in the 27 cells of ``size`` around each point's cell (a box 3 cells wide; one
+    normal per cell, shared by its points). Where that box holds fewer than ``min_points``
+    points (sparse samples: a few points fit any plane) the box of twice the cell is used,
+    and so on up to 8 times the cell. The sign is arbitrary."""
+    normals, count = _cell_normals(points, size)
+    for scale in (2.0, 4.0, 8.0):
+        weak = count < min_points
+        if not bool(weak.any()):
+            break
+        wider, wider_count = _cell_normals(points[weak], size * scale, points)
+        normals[weak], count[weak] = wider, wider_count
+    return normals
+
+
+def _cell_normals(
+    queries: torch.Tensor, size: float, points: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normals ``(Q, 3)`` of the 27-cell boxes around ``queries (Q, 3)`` from the moments of
+    ``points (N, 3)`` (default: the queries), and how many points each box holds ``(Q,)``."""
+    points = queries if points is None else points
+    origin = grid_origin(points, size)
+    keys = cell_keys(_cells(points, size, origin))
+    uniq, inverse = torch.unique(keys, return_inverse=True)
+    C = len(uniq)
+    centre = points.mean(dim=0) if len(points) else points.new_zeros(3)
+    p = points - centre
+    moments = torch.zeros(C + 1, 10, dtype=points.dtype)  # row C: an empty cell
+    moments[:C, 0].index_add_(0, inverse, torch.ones(len(p), dtype=points.dtype))
+    moments[:C, 1:4].index_add_(0, inverse, p)
+    x, y, z = p.unbind(dim=1)
+    products = torch.stack([x * x, x * y, x * z, y * y, y * z, z * z], dim=1)
+    moments[:C, 4:].index_add_(0, inverse, products)
+    # the boxes: around each occupied cell of the queries
+    own = _cells(queries, size, origin)
+    q_uniq, q_inverse = torch.unique(cell_keys(own), return_inverse=True)
+    q_cells = torch.zeros(len(q_uniq), 3, dtype=torch.int64)
+    q_cells.index_copy_(0, q_inverse, own)
+    pos = neighbor_positions(uniq, q_cells)  # (B, 27)
+    pos = torch.where(pos >= 0, pos, C)
+    total = moments[pos[:, 0]].clone()
+    for k in range(1, 27):
+        total += moments[pos[:, k]]
+    n = total[:, 0].clamp_min(1.0)
+    mean = total[:, 1:4] / n[:, None]
+    xx, xy, xz, yy, yz, zz = (total[:, 4 + i] / n for i in range(6))
+    cov = (
+        torch.stack(
+            [
+                torch.stack([xx, xy, xz], dim=1),
+                torch.stack([xy, yy, yz], dim=1),
+                torch.stack([xz, yz, zz], dim=1),
+            ],
+            dim=1,
+        )
+        - mean[:, :, None] * mean[:, None, :]
+    )
+    return smallest_eigenvector(cov)[q_inverse], total[:, 0][q_inverse]
+
+
+def smallest_eigenvector(A: torch.Tensor) -> torch.Tensor:
+    """Unit eigenvectors ``(B, 3)`` of the smallest eigenvalue of symmetric ``A (B, 3, 3)``,
+    in closed form (several times faster than ``torch.linalg.eigh`` on many small
+    matrices): the eigenvalue by the trigonometric solution of the characteristic cubic,
+    the vector as the longest cross product of two rows of ``A - lambda I``. Where that is
+    ill-defined (a nearly isotropic ``A``, or an exact double root) ``eigh`` decides."""
+    a00, a01, a02 = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    a11, a12, a22 = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    q = (a00 + a11 + a22) / 3
+    p1 = a01**2 + a02**2 + a12**2
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2 * p1
+    p = torch.sqrt(p2 / 6).clamp_min(1e-300)
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    det = (
+        b00 * (b11 * b22 - b12 * b12)
+        - b01 * (b01 * b22 - b12 * b02)
+        + b02 * (b01 * b12 - b11 * b02)
+    )
+    phi = torch.acos((det / 2).clamp(-1.0, 1.0)) / 3
+    smallest = q + 2 * p * torch.cos(phi + 2 * math.pi / 3)
+    eye = torch.eye(3, dtype=A.dtype)
+    M = A - smallest[:, None, None] * eye
+    crosses = torch.stack(
+        [
+            torch.linalg.cross(M[:, 0], M[:, 1]),
+            torch.linalg.cross(M[:, 0], M[:, 2]),
+            torch.linalg.cross(M[:, 1], M[:, 2]),
+        ],
+        dim=1,
+    )  # (B, 3, 3)
+    norms = crosses.norm(dim=2)
+    best, pick = norms.max(dim=1)
+    vector = crosses[torch.arange(len(A)), pick] / best.clamp_min(1e-300)[:, None]
+    # ill-conditioned: the rows of A - lambda I nearly parallel (or A nearly isotropic)
+    scale = (p * p).clamp_min(1e-300)
+    shaky = (best < 1e-6 * scale) | (p2 < 1e-24 * (q * q).clamp_min(1e-300))
+    if bool(shaky.any()):
+        vector[shaky] = torch.linalg.eigh(A[shaky]).eigenvectors[:, :, 0]
+    return vector

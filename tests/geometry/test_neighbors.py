@@ -1,0 +1,180 @@
+"""Voxel-grid neighbourhoods: averages, neighbour cells, nearest points, normals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from byoc_cli.geometry.neighbors import (
+    CELL_LIMIT,
+    CellIndex,
+    cell_keys,
+    nearest_candidates,
+    nearest_of,
+    neighbor_positions,
+    smallest_eigenvector,
+    surface_normals,
+    voxel_average,
+)
+
+
+def _cloud(n: int, seed: int, scale: float = 0.3) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
+
+
+def test_voxel_average_hand_case():
+    pts = torch.tensor(
+        [[0.01, 0.01, 0.01], [0.03, 0.05, 0.07], [0.15, 0.0, 0.0], [-0.05, 0.0, 0.0]],
+        dtype=torch.float64,
+    )
+    out = voxel_average(pts, 0.1)
+    expected = {(0.02, 0.03, 0.04), (0.15, 0.0, 0.0), (-0.05, 0.0, 0.0)}
+    assert {tuple(round(v, 9) for v in p) for p in out.tolist()} == expected
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), size=st.sampled_from([0.01, 0.05, 0.2]))
+def test_voxel_average_is_the_mean_of_each_cell(seed, size):
+    pts = _cloud(500, seed)
+    out = voxel_average(pts, size)
+    cells = {}
+    for p in pts.tolist():
+        cells.setdefault(tuple(math.floor(v / size) for v in p), []).append(p)
+    assert len(out) == len(cells)
+    means = {k: np.mean(v, axis=0) for k, v in cells.items()}
+    for p in out.tolist():
+        key = tuple(math.floor(v / size) for v in p)
+        assert np.allclose(p, means[key], atol=1e-12)
+
+
+def test_cell_keys_order_and_limit():
+    cells = torch.tensor([[0, 0, 0], [0, 0, 1], [0, 1, -5], [1, -9, 0], [-1, 3, 3]])
+    keys = cell_keys(cells)
+    assert torch.equal(torch.argsort(keys), torch.tensor([4, 0, 1, 2, 3]))
+    assert int(keys[1] - keys[0]) == 1  # neighbours along z: consecutive keys
+    with pytest.raises(ValueError, match="cells"):
+        cell_keys(torch.tensor([[CELL_LIMIT, 0, 0]]))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_neighbor_positions_match_a_dictionary(seed):
+    g = torch.Generator().manual_seed(seed)
+    occupied = torch.unique(cell_keys(torch.randint(-4, 5, (300, 3), generator=g)))
+    queries = torch.randint(-5, 6, (60, 3), generator=g)
+    pos = neighbor_positions(occupied, queries)
+    where = {int(k): i for i, k in enumerate(occupied.tolist())}
+    for q, row in zip(queries.tolist(), pos.tolist(), strict=True):
+        expected = set()
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    key = int(cell_keys(torch.tensor([[q[0] + dx, q[1] + dy, q[2] + dz]]))[0])
+                    if key in where:
+                        expected.add(where[key])
+        assert {p for p in row if p >= 0} == expected
+        assert len([p for p in row if p >= 0]) == len(expected)  # no cell twice
+
+
+def test_neighbor_positions_of_nothing():
+    assert neighbor_positions(
+        torch.zeros(0, dtype=torch.int64), torch.zeros(3, 3).long()
+    ).shape == (
+        3,
+        27,
+    )
+    assert (
+        neighbor_positions(torch.zeros(0, dtype=torch.int64), torch.zeros(3, 3).long()) == -1
+    ).all()
+
+
+@pytest.mark.parametrize("averaged", [True, False])
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_around_holds_every_point_within_a_cell_and_nearest_is_exact(averaged, seed):
+    size = 0.05
+    target = _cloud(3000, seed)
+    if averaged:  # one point per cell: the refinement's targets
+        target = voxel_average(target, size)
+    index = CellIndex(target, size)
+    # both ways of reading the cells: one point per cell, and several
+    assert index.max_count == 1 if averaged else index.max_count > 1
+    queries = _cloud(200, seed + 1, scale=0.32)
+    cand = index.around(queries)
+    d = torch.cdist(queries, target)
+    for i in range(len(queries)):
+        within = set(torch.nonzero(d[i] < size).flatten().tolist())
+        assert within <= {c for c in cand[i].tolist() if c >= 0}
+    near = nearest_of(index, queries, nearest_candidates(index, queries, 8))
+    best, arg = d.min(dim=1)
+    close = best < size
+    assert torch.equal(near.index[close], arg[close])
+    assert torch.allclose(near.distance2[close].double(), best[close] ** 2, atol=1e-7)
+
+
+def test_nearest_of_with_no_candidates():
+    pts = _cloud(10, 0)
+    out = nearest_of(CellIndex(pts, 0.1), pts[:2], torch.full((2, 4), -1, dtype=torch.int64))
+    assert torch.isinf(out.distance2).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_normals_of_a_noisy_plane_and_a_sphere(seed):
+    g = torch.Generator().manual_seed(seed)
+    normal = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=torch.float64), dim=0)
+    basis = torch.linalg.qr(
+        torch.cat([normal[:, None], torch.randn(3, 2, dtype=torch.float64, generator=g)], 1)
+    ).Q
+    uv = (torch.rand(20_000, 2, generator=g, dtype=torch.float64) - 0.5) * 2.0
+    plane = (
+        uv @ basis[:, 1:].T
+        + 0.002 * torch.randn(20_000, 1, generator=g, dtype=torch.float64) * normal
+    )
+    n = surface_normals(plane, 0.03)
+    assert (n.norm(dim=1) - 1).abs().max() < 1e-9
+    cos = (n @ normal).abs()
+    assert float(cos.median()) > math.cos(math.radians(2))
+    assert float(cos.quantile(0.01)) > math.cos(math.radians(10))  # thin cells at the rim
+    sphere = torch.nn.functional.normalize(
+        torch.randn(40_000, 3, generator=g, dtype=torch.float64), dim=1
+    )
+    n = surface_normals(sphere, 0.03)
+    assert float((n * sphere).sum(1).abs().median()) > math.cos(math.radians(3))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), flat=st.sampled_from([1.0, 1e-3, 1e-6, 0.0]))
+def test_smallest_eigenvector_matches_eigh(seed, flat):
+    g = torch.Generator().manual_seed(seed)
+    R = torch.linalg.qr(torch.randn(64, 3, 3, generator=g, dtype=torch.float64)).Q
+    lam = torch.rand(64, 3, generator=g, dtype=torch.float64) + 0.1
+    lam[:, 0] = lam[:, 0] * flat  # from isotropic-ish to exactly planar
+    A = R @ torch.diag_embed(lam) @ R.transpose(1, 2)
+    v = smallest_eigenvector(A)
+    ref = torch.linalg.eigh(A).eigenvectors[:, :, 0]
+    assert torch.allclose(v.norm(dim=1), torch.ones(64, dtype=torch.float64))
+    # the residual of the eigen-equation is what matters where eigenvalues are close
+    smallest = torch.linalg.eigvalsh(A)[:, 0]
+    residual = (A @ v[:, :, None])[:, :, 0] - smallest[:, None] * v
+    assert float(residual.norm(dim=1).max()) < 1e-8
+    separated = (torch.linalg.eigvalsh(A)[:, 1] - smallest) > 1e-3
+    assert torch.allclose(
+        (v * ref).sum(1).abs()[separated],
+        torch.ones(int(separated.sum()), dtype=torch.float64),
+        atol=1e-8,
+    )
+
+
+def test_smallest_eigenvector_of_isotropic_and_double_roots():
+    A = torch.stack(
+        [torch.eye(3), torch.diag(torch.tensor([1.0, 1.0, 5.0])), torch.zeros(3, 3)]
+    ).double()
+    v = smallest_eigenvector(A)
+    assert torch.allclose(v.norm(dim=1), torch.ones(3, dtype=torch.float64))
+    assert abs(float(v[1, 2])) < 1e-9  # in the plane of the double root
