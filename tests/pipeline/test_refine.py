@@ -39,15 +39,23 @@ def _pose_error(T, T_ref):
 ROOM = [([-1.5, -1.2, 0.0], [1.5, 1.2, 2.0]), ([-0.4, -0.3, 0.0], [0.3, 0.2, 0.7])]
 
 
-def test_recovers_a_known_motion_from_a_rough_start(generator):
-    tgt = _boxes(60_000, ROOM, generator)
-    R = axis_angle_to_matrix(torch.tensor([0.1, 0.3, -0.2], dtype=torch.float64))
-    T_true = make_transform(R, torch.tensor([0.2, -0.1, 0.05], dtype=torch.float64))
-    src = apply_transform(invert_transform(T_true), _boxes(60_000, ROOM, generator))
-    nudge = make_transform(
-        axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(3.0)], dtype=torch.float64)),
-        torch.tensor([0.04, -0.03, 0.0], dtype=torch.float64),
+def _motion(rotvec, t) -> torch.Tensor:
+    return make_transform(
+        axis_angle_to_matrix(torch.tensor(rotvec, dtype=torch.float64)),
+        torch.tensor(t, dtype=torch.float64),
     )
+
+
+def _room_pair(n: int, T_true: torch.Tensor, generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(src, tgt)``: two samplings of ROOM, the source moved by ``T_true``'s inverse."""
+    tgt = _boxes(n, ROOM, generator)
+    return apply_transform(invert_transform(T_true), _boxes(n, ROOM, generator)), tgt
+
+
+def test_recovers_a_known_motion_from_a_rough_start(generator):
+    T_true = _motion([0.1, 0.3, -0.2], [0.2, -0.1, 0.05])
+    src, tgt = _room_pair(60_000, T_true, generator)
+    nudge = _motion([0.0, 0.0, math.radians(3.0)], [0.04, -0.03, 0.0])
     out = refine_multiscale(src, tgt, nudge @ T_true, voxel_size=0.025)
     rot, trans = _pose_error(out.T_tgt_src, T_true)
     assert _pose_error(nudge @ T_true, T_true)[1] > 0.04
@@ -93,14 +101,9 @@ def test_prepared_clouds_give_the_same_result_and_check_the_voxel(generator):
 
 def test_georeferenced_coordinates_refine_as_well_as_near_the_origin(generator):
     # UTM-like coordinates (hundreds of km): the grids start at the cloud, not at 0
-    tgt = _boxes(40_000, ROOM, generator)
-    R = axis_angle_to_matrix(torch.tensor([0.0, 0.1, -0.2], dtype=torch.float64))
-    T_true = make_transform(R, torch.tensor([0.1, -0.1, 0.05], dtype=torch.float64))
-    src = apply_transform(invert_transform(T_true), _boxes(40_000, ROOM, generator))
-    nudge = make_transform(
-        axis_angle_to_matrix(torch.tensor([0.0, math.radians(2.0), 0.0], dtype=torch.float64)),
-        torch.tensor([0.03, 0.02, -0.01], dtype=torch.float64),
-    )
+    T_true = _motion([0.0, 0.1, -0.2], [0.1, -0.1, 0.05])
+    src, tgt = _room_pair(40_000, T_true, generator)
+    nudge = _motion([0.0, math.radians(2.0), 0.0], [0.03, 0.02, -0.01])
     near = refine_multiscale(src, tgt, nudge @ T_true, voxel_size=0.025)
     offset = torch.tensor([512_345.0, 4_123_456.0, 310.0], dtype=torch.float64)
     shift = make_transform(torch.eye(3, dtype=torch.float64), offset)

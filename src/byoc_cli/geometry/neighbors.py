@@ -19,23 +19,25 @@ from typing import NamedTuple
 import torch
 
 from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.voxel import voxel_keys
 
 #: cells per axis either side of the origin that a key can hold (2^20 cells of 1 cm: 10 km)
 CELL_LIMIT = 1 << 20
-_BITS = 21
 
 
 def cell_keys(cells: torch.Tensor) -> torch.Tensor:
-    """One int64 key per cell of ``cells (N, 3)`` int64; order of keys = x, then y, then z.
+    """One int64 key per cell of ``cells (N, 3)`` int64 (the packing of
+    :func:`byoc_cli.geometry.voxel.voxel_keys`): keys order x, then y, then z, and cells
+    next to each other along z have consecutive keys.
 
     Raises:
         ValueError: a cell index is :data:`CELL_LIMIT` or more away from the origin (the
             cloud is too large for the cell size).
     """
-    if len(cells) and int(cells.abs().max()) >= CELL_LIMIT - 1:
-        raise ValueError(f"cloud spans more than {CELL_LIMIT} cells from the origin")
-    c = cells + CELL_LIMIT
-    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+    try:
+        return voxel_keys(cells)
+    except ShapeError as exc:
+        raise ValueError(f"cloud spans more than {CELL_LIMIT} cells from the origin") from exc
 
 
 def grid_origin(points: torch.Tensor, size: float) -> torch.Tensor:

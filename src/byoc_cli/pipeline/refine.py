@@ -156,32 +156,6 @@ def refine_multiscale(
     Raises:
         ValueError: a :class:`RefineCloud` was prepared for another voxel size.
     """
-    return _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding)
-
-
-def _prepared(points, voxel_size: float) -> RefineCloud:
-    if isinstance(points, RefineCloud):
-        if not math.isclose(points.voxel_size, voxel_size, rel_tol=1e-9):
-            raise ValueError(
-                f"RefineCloud prepared for voxel {points.voxel_size:g} m, "
-                f"refining at {voxel_size:g} m"
-            )
-        return points
-    return RefineCloud(points, voxel_size)
-
-
-@contextlib.contextmanager
-def _threads(count: int) -> Iterator[None]:
-    """Run the block with ``count`` torch threads."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
-def _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding) -> Refinement:
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
     T = T_init.detach().to(device="cpu", dtype=torch.float64).clone()
     rank, fitness = 0, 0.0
@@ -214,3 +188,25 @@ def _refine(points_src, points_tgt, T_init, voxel_size, degeneracy, sliding) -> 
             if angle < TOLERANCE and float(step.T[:3, 3].norm()) < TOLERANCE * voxel_size:
                 break
     return Refinement(T, rank, fitness)
+
+
+def _prepared(points, voxel_size: float) -> RefineCloud:
+    if isinstance(points, RefineCloud):
+        if not math.isclose(points.voxel_size, voxel_size, rel_tol=1e-9):
+            raise ValueError(
+                f"RefineCloud prepared for voxel {points.voxel_size:g} m, "
+                f"refining at {voxel_size:g} m"
+            )
+        return points
+    return RefineCloud(points, voxel_size)
+
+
+@contextlib.contextmanager
+def _threads(count: int) -> Iterator[None]:
+    """Run the block with ``count`` torch threads."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
