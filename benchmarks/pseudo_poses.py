@@ -3,11 +3,14 @@
 Usage::
 
     python benchmarks/pseudo_poses.py --rgbd-dir ../shared/data/rgbd/tum_fr1_desk_full \
-        [--rgbd-dir ...] [--gaps 5 10 20] [--start-stride 2] [--from-run runs/sp1] [--json out.json]
+        [--rgbd-dir ...] [--gaps 5 10 20] [--start-stride 2] [--weights W.safetensors]
+        [--from-run runs/sp1 [--round 2]] [--json out.json]
 
 For each posed sequence the pairs are estimated exactly as ``byoc train --variant
-self-posed`` does (no pose read), or read from a run folder's ``pseudo_pairs/`` cache with
-``--from-run`` (matched by sequence folder), then compared with the ground truth: per gap
+self-posed`` does (no pose read; with ``--weights``, as its later rounds do: that encoder is
+the global registration), or read from a run folder's cache with ``--from-run`` (round 1:
+``pseudo_pairs/``, ``--round R``: ``pseudo_pairs/round-R/``; matched by sequence folder),
+then compared with the ground truth: per gap
 (frames apart), the pairs tried and kept, the kept share, the median rotation and
 translation error of the kept pairs, and the share within 2 deg / 5 cm. The ground-truth
 motion of the kept pairs (median) says how wide the baselines are.
@@ -24,8 +27,10 @@ from pathlib import Path
 import numpy as np
 
 
-def _from_run(run: Path, sequence) -> dict | None:
-    for path in sorted((run / "pseudo_pairs").glob("*.json")):
+def _from_run(run: Path, round_number: int, sequence) -> dict | None:
+    from byoc_cli.training.self_posed import pairs_folder
+
+    for path in sorted(pairs_folder(run, round_number).glob("*.json")):
         record = json.loads(path.read_text())
         if Path(record["sequence"]).resolve() == Path(sequence.root).resolve():
             return record
@@ -38,11 +43,14 @@ def main() -> int:
     parser.add_argument("--gaps", type=int, nargs="+", default=None)
     parser.add_argument("--start-stride", type=int, default=None)
     parser.add_argument("--from-run", type=Path, default=None)
+    parser.add_argument("--round", type=int, default=1)
+    parser.add_argument("--weights", type=Path, default=None)
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
 
     from byoc_cli.io.rgbd import discover_sequences
     from byoc_cli.training.pseudo_poses import (
+        LearnedStart,
         PseudoPoseConfig,
         SequencePairs,
         estimate_pairs,
@@ -65,7 +73,7 @@ def main() -> int:
     for root in args.rgbd_dir:
         # all frames (as training lists them); frames without a pose are skipped in the table
         for sequence in discover_sequences(root):
-            record = _from_run(args.from_run, sequence) if args.from_run else None
+            record = _from_run(args.from_run, args.round, sequence) if args.from_run else None
             t0 = time.perf_counter()
             if record is not None:
                 config = PseudoPoseConfig(
@@ -85,7 +93,14 @@ def main() -> int:
                 config = PseudoPoseConfig(**overrides)
                 # the estimate sees a copy without poses, as training does
                 blind = discover_sequences(sequence.root, read_poses=False)[0]
-                result = estimate_pairs(blind, config)
+                start = None
+                if args.weights:
+                    from byoc_cli.pipeline.weights import load_weights
+
+                    loaded = load_weights(args.weights)
+                    voxel = float(loaded.metadata.get("voxel_size", config.voxel_size))
+                    start = LearnedStart(loaded.encoder, voxel, config.seed)
+                result = estimate_pairs(blind, config, global_start=start)
             seconds = time.perf_counter() - t0
             gt = [sequence.pose(i) for i in range(len(sequence.frames))]
             table = pair_accuracy(result, gt, config)

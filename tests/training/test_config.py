@@ -43,7 +43,17 @@ def test_misspelled_key_is_refused_with_hint(tmp_path):
         load_config_file(path)
 
 
-@pytest.mark.parametrize("text", ["steps = 'ten'\n", "steps = 1.5\n", "amp = 3\n", "steps = [\n"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "steps = 'ten'\n",
+        "steps = 1.5\n",
+        "amp = 3\n",
+        "steps = [\n",
+        "pair_gaps = []\n",
+        "round_gaps = [1.5]\n",
+    ],
+)
 def test_bad_values(tmp_path, text):
     path = tmp_path / "c.toml"
     path.write_text(text)
@@ -61,6 +71,20 @@ def test_range_errors():
         TrainConfig(variant="byoc-foo")
     with pytest.raises(ValueError, match="steps"):
         TrainConfig(steps=0)
+    with pytest.raises(ValueError, match="round_steps"):
+        TrainConfig(round_steps=-1)
+    with pytest.raises(ValueError, match="round_gaps"):
+        TrainConfig(round_gaps=(0,))
+
+
+def test_round_gaps_from_a_file(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("round_steps = 500\nround_gaps = [90]\n")
+    values = load_config_file(path)
+    assert values == {"round_steps": 500, "round_gaps": (90,)}
+    assert TrainConfig(**values).round_gaps == (90,)
+    path.write_text("round_gaps = []\n")  # no wider gaps: later rounds re-pose the same gaps
+    assert TrainConfig(**load_config_file(path)).round_gaps == ()
 
 
 def test_json_round_trip(tmp_path):

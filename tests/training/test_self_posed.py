@@ -68,8 +68,10 @@ def test_training_reads_no_ground_truth(sequence_copies, tmp_path):
     global _opened
     with_gt, without_gt = sequence_copies
     _opened = []
+    # two rounds: the second poses the frames again with the encoder being trained
+    rounds = {"round_steps": 2, "round_gaps": (6,)}
     try:
-        first = train(_config(with_gt, tmp_path / "a"))
+        first = train(_config(with_gt, tmp_path / "a", **rounds))
     finally:
         opened, _opened = _opened, None
     assert any(p.endswith(".png") for p in opened)  # the hook does see the data being read
@@ -84,8 +86,9 @@ def test_training_reads_no_ground_truth(sequence_copies, tmp_path):
         control, _opened = _opened, None
     assert [p for p in control if p.endswith(_POSE_NAMES)]
     # and the result does not depend on the ground truth being there at all
-    second = train(_config(without_gt, tmp_path / "b"))
+    second = train(_config(without_gt, tmp_path / "b", **rounds))
     _assert_identical(first.weights_path, second.weights_path)
+    assert sorted((tmp_path / "b" / "pseudo_pairs" / "round-2").glob("*.json"))
     pairs = sorted((tmp_path / "a" / "pseudo_pairs").glob("*.json"))
     assert pairs and (tmp_path / "a" / "pseudo_pairs" / pairs[0].name).stat().st_size > 0
 
@@ -201,3 +204,36 @@ def test_pairs_from_reuses_an_earlier_runs_pairs(sequence_copies, tmp_path, monk
                 pairs_from=str(tmp_path / "first"),
             )
         )
+
+
+def test_rounds_pose_again_with_the_trained_encoder_and_resume_exactly(sequence_copies, tmp_path):
+    import json
+
+    from byoc_cli.pipeline.weights import load_weights
+    from byoc_cli.training.plot import read_metrics
+
+    data, _ = sequence_copies
+    rounds = {"round_steps": 2, "round_gaps": (6,), "checkpoint_every": 3}
+    straight = train(_config(data, tmp_path / "straight", **rounds))
+    run = tmp_path / "straight"
+    first = json.loads(next((run / "pseudo_pairs").glob("*.json")).read_text())
+    second = json.loads(next((run / "pseudo_pairs" / "round-2").glob("*.json")).read_text())
+    assert first["global_start"] == "fpfh" and first["config"]["gaps"] == [2, 4]
+    assert second["global_start"] == "learned" and second["round"] == 2
+    assert second["config"]["gaps"] == [2, 4, 6]  # the wider gaps of later rounds
+    assert second["candidates"]["6"] >= 1
+    logged = [r for r in read_metrics(run / "metrics.jsonl") if r["kind"] == "round"]
+    assert [(r["round"], r["step"]) for r in logged] == [(1, 0), (2, 2)]
+    assert logged[1]["pairs"] == len(second["pairs"])
+    assert logged[1]["sequences"]["tum_fr1_xyz"]["kept"] == second["kept"]
+    recipe = load_weights(straight.weights_path).metadata["training"]["recipe"]
+    assert recipe["rounds"] == 2 and recipe["round_steps"] == 2
+    # the end of a round is checkpointed (here not a multiple of checkpoint_every); a run
+    # stopped there poses round 2 on resume from that checkpoint and ends bit-identical
+    train(_config(data, tmp_path / "resumed", steps=2, **rounds))
+    assert (tmp_path / "resumed" / "checkpoints" / "step-00000002.pt").exists()
+    assert not (tmp_path / "resumed" / "pseudo_pairs" / "round-2").exists()
+    resumed = train(resume_config(tmp_path / "resumed", {"steps": 4}), resume=True)
+    _assert_identical(straight.weights_path, resumed.weights_path)
+    again = read_metrics(tmp_path / "resumed" / "metrics.jsonl")
+    assert [r["round"] for r in again if r["kind"] == "round"] == [1, 2]

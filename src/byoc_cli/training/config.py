@@ -79,6 +79,10 @@ class TrainConfig:
         aug_min_keep: ``self-posed``: each view keeps a random share >= this of its points.
         pair_gaps: ``self-posed``: frame distances of the self-posed pairs.
         crop_radius: ``self-posed``: both views cut to a ball of this radius (m); 0 = off.
+        round_steps: ``self-posed``: steps per round (0: one round). Each later round poses the
+            sequences again, with the encoder as trained so far as the global registration,
+            and trains on those pairs.
+        round_gaps: ``self-posed``: frame distances added to ``pair_gaps`` from round 2 on.
         pairs_from: ``self-posed``: an earlier run folder whose self-posed pairs are reused
             for the same sequences made with the same settings (None: estimate them).
         init_weights: a weights file (or ``shipped``: the weights that ship with the package)
@@ -123,11 +127,14 @@ class TrainConfig:
     aug_min_keep: float = 0.7
     pair_gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
     crop_radius: float = 0.0
+    round_steps: int = 0
+    round_gaps: tuple[int, ...] = (80, 100, 120)
     pairs_from: str | None = None
     init_weights: str | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "pair_gaps", tuple(int(g) for g in self.pair_gaps))
+        for name in ("pair_gaps", "round_gaps"):
+            object.__setattr__(self, name, tuple(int(g) for g in getattr(self, name)))
         problems = []
         if self.variant not in VARIANTS:
             problems.append(f"variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
@@ -150,11 +157,14 @@ class TrainConfig:
             "val_max_pairs",
             "num_workers",
             "seed",
+            "round_steps",
         ):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.pair_gaps or min(self.pair_gaps) < 1:
             problems.append(f"pair_gaps must be positive frame distances, got {self.pair_gaps}")
+        if self.round_gaps and min(self.round_gaps) < 1:
+            problems.append(f"round_gaps must be positive frame distances, got {self.round_gaps}")
         if not self.crop_radius >= 0:
             problems.append(f"crop_radius must be >= 0, got {self.crop_radius}")
         if not 0 < self.aug_min_keep <= 1 or not 0 <= self.aug_scale < 1:
@@ -202,10 +212,10 @@ def _coerce(key: str, value: Any, source: object) -> Any:
             return tuple(value)
         raise InputError(source, f"'{key}' must be a path or a list of paths")
     ref = TrainConfig.__dataclass_fields__[key].default
-    if key == "pair_gaps":
+    if key in ("pair_gaps", "round_gaps"):
         if (
             isinstance(value, list | tuple)
-            and value
+            and (value or key == "round_gaps")
             and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
         ):
             return tuple(value)

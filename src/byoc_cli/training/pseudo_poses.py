@@ -4,12 +4,14 @@ For one depth sequence (poses never read):
 
 1. odometry: every consecutive pair of (sub-sampled) frames is registered with coarse-to-fine
    point-to-plane ICP from the identity and from the previous motion (constant velocity); when
-   neither fits, FPFH + RANSAC gives the start. A frame that still does not fit starts a new
-   segment (the chain is never bridged by a guess);
+   neither fits, a global registration gives the start (FPFH + RANSAC, or in later training
+   rounds the learned encoder: ``global_start``). A frame that still does not fit starts a
+   new segment (the chain is never bridged by a guess);
 2. wide pairs: inside a segment, every ``start_stride``-th frame is paired with the frames
    ``gaps`` later; each pair is registered directly with ICP started from the chained
-   odometry, and kept as a loop edge when its fit is good (overlap, RMSE) and it agrees with
-   the chain within a loose bound (ICP did not slide into another basin);
+   odometry (and, when that fails and a ``global_start`` is given, from the global
+   registration), and kept as a loop edge when its fit is good (overlap, RMSE) and it agrees
+   with the chain within a loose bound (ICP did not slide into another basin);
 3. a pose graph of the odometry and loop edges is optimised (Open3D, pruning inconsistent
    edges); a wide pair is kept for training only when its direct estimate agrees with the
    optimised poses, i.e. with every other path between its two frames (cycle consistency).
@@ -75,6 +77,12 @@ class PseudoPoseConfig:
             raise ValueError(f"gaps must be positive frame distances, got {self.gaps}")
 
 
+#: ``global_start(src, src_points, tgt, tgt_points) -> T_tgt_src (4, 4) | None``: a global
+#: registration of used frame ``src`` onto used frame ``tgt`` (their points ``(N, 3)`` at the
+#: fine voxel; the indices let it cache per-frame work); None when it finds no transform
+GlobalStart = Callable[[int, np.ndarray, int, np.ndarray], "np.ndarray | None"]
+
+
 class PseudoPair(NamedTuple):
     """A verified pair: ``T_i_j`` maps the points of frame ``j`` into frame ``i``.
 
@@ -120,9 +128,26 @@ def _fits(est: Any, min_fitness: float, max_rmse: float) -> bool:
     return est.fitness >= min_fitness and est.rmse <= max_rmse
 
 
-def _odometry_step(clouds, k: int, velocity: np.ndarray, config: PseudoPoseConfig):
+def _fine_points(cloud: Any) -> np.ndarray:
+    """``(N, 3)`` float64 points of a prepared cloud's finest level."""
+    return np.asarray(cloud.levels[-1].points)
+
+
+def _global(clouds, src: int, tgt: int, config: PseudoPoseConfig, global_start):
+    """A global start for used frame ``src`` onto ``tgt``: ``(origin, T | None)``."""
+    from byoc_cli.pipeline.posegraph import fpfh_ransac
+
+    if global_start is None:
+        return "fpfh", fpfh_ransac(clouds[src], clouds[tgt], seed=config.seed + src)
+    T = global_start(src, _fine_points(clouds[src]), tgt, _fine_points(clouds[tgt]))
+    return "learned", T
+
+
+def _odometry_step(
+    clouds, k: int, velocity: np.ndarray, config: PseudoPoseConfig, global_start=None
+):
     """Register used frame ``k`` onto ``k - 1``; returns the best estimate and its origin."""
-    from byoc_cli.pipeline.posegraph import fpfh_ransac, multiscale_icp
+    from byoc_cli.pipeline.posegraph import multiscale_icp
 
     src, tgt = clouds[k], clouds[k - 1]
     tries = [("identity", multiscale_icp(src, tgt, np.eye(4)))]
@@ -130,16 +155,48 @@ def _odometry_step(clouds, k: int, velocity: np.ndarray, config: PseudoPoseConfi
         tries.append(("velocity", multiscale_icp(src, tgt, velocity)))
     best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
     if not _fits(best[1], config.odometry_min_fitness, config.odometry_max_rmse):
-        start = fpfh_ransac(src, tgt, seed=config.seed + k)
-        tries.append(("fpfh", multiscale_icp(src, tgt, start)))
-        best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
+        origin, start = _global(clouds, k, k - 1, config, global_start)
+        if start is not None:
+            tries.append((origin, multiscale_icp(src, tgt, start)))
+            best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
     return best
+
+
+def _wide_rejection(est: Any, T_chain: np.ndarray, config: PseudoPoseConfig) -> str | None:
+    """Why a direct estimate is not a loop edge (``rejected_fit`` / ``rejected_chain``)."""
+    if not _fits(est, config.min_fitness, config.max_rmse):
+        return "rejected_fit"
+    rot, trans = transform_difference(T_chain, est.T_tgt_src)
+    if rot > config.chain_rotation_deg or trans > config.chain_translation:
+        return "rejected_chain"
+    return None
+
+
+def _wide_pair(clouds, a: int, b: int, T_chain: np.ndarray, config, global_start):
+    """Direct estimate of used frame ``b`` onto ``a``: ``(estimate | None, origin | reason)``.
+
+    ICP starts from the chained odometry (origin ``chain``); when that is rejected and
+    ``global_start`` is given, ICP starts again from the global registration, held to the
+    same checks (``learned_start``).
+    """
+    est = _direct(clouds, a, b, T_chain)
+    reason = _wide_rejection(est, T_chain, config)
+    if reason is None:
+        return est, "chain"
+    if global_start is not None:
+        _, start = _global(clouds, b, a, config, global_start)
+        if start is not None:
+            again = _direct(clouds, a, b, start)
+            if _wide_rejection(again, T_chain, config) is None:
+                return again, "learned_start"
+    return None, reason
 
 
 def estimate_pairs(
     sequence: Any,
     config: PseudoPoseConfig | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    global_start: GlobalStart | None = None,
 ) -> SequencePairs:
     """Estimate, verify and keep wide self-posed pairs of one sequence (see module doc).
 
@@ -147,6 +204,8 @@ def estimate_pairs(
         sequence: an ``RGBDSequence`` (its poses, if any, are never read).
         config: settings.
         progress: called as ``progress(stage, done, total)``.
+        global_start: the global registration of later rounds (e.g. :class:`LearnedStart`);
+            None: FPFH + RANSAC where odometry needs a start, the chain alone for wide pairs.
 
     Returns:
         :class:`SequencePairs`.
@@ -161,11 +220,14 @@ def estimate_pairs(
         clouds.append(prepare_cloud(frame_points(sequence, f, config.max_depth), config.voxel_size))
         report("frames", n + 1, len(frames))
 
-    stats = {"odometry_identity": 0, "odometry_velocity": 0, "odometry_fpfh": 0, "breaks": 0}
+    stats = dict.fromkeys(
+        ("odometry_identity", "odometry_velocity", "odometry_fpfh", "odometry_learned", "breaks"),
+        0,
+    )
     segments, chain, odo_edges = [0], [np.eye(4)], []
     velocity = np.eye(4)
     for k in range(1, len(frames)):
-        origin, est = _odometry_step(clouds, k, velocity, config)
+        origin, est = _odometry_step(clouds, k, velocity, config, global_start)
         if _fits(est, config.odometry_min_fitness, config.odometry_max_rmse):
             stats[f"odometry_{origin}"] += 1
             segments.append(segments[-1])
@@ -189,16 +251,12 @@ def estimate_pairs(
                 continue
             candidates[gap] += 1
             T_chain = np.linalg.inv(chain[a]) @ chain[b]
-            est = _direct(clouds, a, b, T_chain)
-            if not _fits(est, config.min_fitness, config.max_rmse):
-                stats["rejected_fit"] = stats.get("rejected_fit", 0) + 1
-                continue
-            rot, trans = transform_difference(T_chain, est.T_tgt_src)
-            if rot > config.chain_rotation_deg or trans > config.chain_translation:
-                stats["rejected_chain"] = stats.get("rejected_chain", 0) + 1
+            est, origin = _wide_pair(clouds, a, b, T_chain, config, global_start)
+            if est is None:
+                stats[origin] = stats.get(origin, 0) + 1
                 continue
             loop_edges.append((Edge(b, a, est.T_tgt_src, est.information, True), est))
-            loop_gaps.append(gap)
+            loop_gaps.append((gap, origin))
         report("pairs", n + 1, len(starts))
 
     poses = list(chain)
@@ -220,7 +278,7 @@ def estimate_pairs(
         for k, pose in zip(nodes, optimised, strict=True):
             poses[k] = pose
         loop_kept = edge_kept[len(edges) - len(seg_loops) :]
-        for (edge, est, gap), survived in zip(seg_loops, loop_kept, strict=True):
+        for (edge, est, (gap, origin)), survived in zip(seg_loops, loop_kept, strict=True):
             a, b = edge.tgt, edge.src
             T_graph = np.linalg.inv(poses[a]) @ poses[b]
             rot, trans = transform_difference(T_graph, est.T_tgt_src)
@@ -230,6 +288,8 @@ def estimate_pairs(
                 stats["rejected_cycle"] = stats.get("rejected_cycle", 0) + 1
             else:
                 kept[gap] += 1
+                if origin != "chain":
+                    stats[f"kept_{origin}"] = stats.get(f"kept_{origin}", 0) + 1
                 kept_pairs.append(
                     PseudoPair(frames[a], frames[b], est.T_tgt_src, est.fitness, est.rmse)
                 )
@@ -324,3 +384,52 @@ def pairs_from_json(record: dict) -> list[PseudoPair]:
         )
         for p in record["pairs"]
     ]
+
+
+class LearnedStart:
+    """A :data:`GlobalStart` from a geometric encoder (the later rounds of self-posing).
+
+    Ratio-test matches of the encoder's features and RANSAC with the settings ``byoc
+    register`` uses for learned features, without refinement (ICP follows in
+    :func:`estimate_pairs`). Each frame is encoded once.
+
+    Args:
+        encoder: a geometric encoder; a frozen copy is used (the argument is not changed).
+        voxel_size: the encoder's voxel (metres).
+        seed: seeds the subsets and RANSAC.
+    """
+
+    def __init__(self, encoder: Any, voxel_size: float, seed: int = 0) -> None:
+        import copy
+
+        from byoc_cli.pipeline.features import ByocExtractor
+        from byoc_cli.pipeline.register import FEATURE_DEFAULTS, RegisterConfig
+
+        self.extract = ByocExtractor(copy.deepcopy(encoder).cpu(), voxel_size)
+        settings = {k: v for k, v in FEATURE_DEFAULTS["byoc"].items() if k != "refine"}
+        self.config = RegisterConfig(**settings, seed=seed)
+        self.features: dict[int, Any] = {}
+
+    def _features(self, index: int, points: np.ndarray) -> Any:
+        import torch
+
+        if index not in self.features:
+            self.features[index] = self.extract(torch.from_numpy(points), label=f"frame {index}")
+        return self.features[index]
+
+    def __call__(
+        self, src: int, src_points: np.ndarray, tgt: int, tgt_points: np.ndarray
+    ) -> np.ndarray | None:
+        from byoc_cli.errors import RegistrationError
+        from byoc_cli.pipeline.register import estimate_transform
+
+        try:
+            result = estimate_transform(
+                self._features(src, src_points),
+                self._features(tgt, tgt_points),
+                self.config,
+                self.extract.voxel_size,
+            )
+        except RegistrationError:
+            return None
+        return result.T_tgt_src.numpy()

@@ -3,11 +3,15 @@
 No poses and no labels are read from the training data: each sequence's wide pairs and
 their relative poses come from :mod:`byoc_cli.training.pseudo_poses` (the tool's own
 registration, verified by fit and cycle consistency) and are cached in the run folder
-(``pseudo_pairs/NN-<sequence>.json``). Each step draws ``batch_size`` pairs, makes two
-augmented views of each (:mod:`byoc_cli.training.self_posed_data`), encodes all views in one
-batched sparse forward pass and applies a symmetric InfoNCE loss on up to ``num_positives``
-dense correspondences per pair. Validation (``val_dir``, posed sequences) measures the
-feature-match recall of frame pairs ``val_spacing`` frames apart.
+(``pseudo_pairs/NN-<sequence>.json``). With ``round_steps``, training runs in rounds: at
+the start of round ``r >= 2`` the sequences are posed again with the encoder as trained so
+far as the global registration (:class:`~byoc_cli.training.pseudo_poses.LearnedStart`) and
+the wider ``round_gaps`` added, cached in ``pseudo_pairs/round-r/``; each round's kept pairs
+are logged (``metrics.jsonl``, records of kind ``round``). Each step draws ``batch_size``
+pairs, makes two augmented views of each (:mod:`byoc_cli.training.self_posed_data`), encodes
+all views in one batched sparse forward pass and applies a symmetric InfoNCE loss on up to
+``num_positives`` dense correspondences per pair. Validation (``val_dir``, posed sequences)
+measures the feature-match recall of frame pairs ``val_spacing`` frames apart.
 
 The run folder, checkpoints, metrics and exported weights follow the other variants
 (:mod:`byoc_cli.training.trainer`).
@@ -35,6 +39,7 @@ from byoc_cli.training.checkpoint import (
 from byoc_cli.training.config import TrainConfig
 from byoc_cli.training.metric_loss import info_nce, sample_matches
 from byoc_cli.training.pseudo_poses import (
+    LearnedStart,
     PseudoPair,
     PseudoPoseConfig,
     estimate_pairs,
@@ -61,9 +66,23 @@ PAIRS_DIR = "pseudo_pairs"
 CACHE_VOXEL_FACTOR = 0.5
 
 
-def pseudo_config(config: TrainConfig) -> PseudoPoseConfig:
-    """The self-posing settings of a training configuration."""
-    return PseudoPoseConfig(voxel_size=config.voxel_size, gaps=config.pair_gaps, seed=config.seed)
+def pseudo_config(config: TrainConfig, round_number: int = 1) -> PseudoPoseConfig:
+    """The self-posing settings of a training configuration in round ``round_number``."""
+    gaps = config.pair_gaps + (config.round_gaps if round_number > 1 else ())
+    return PseudoPoseConfig(
+        voxel_size=config.voxel_size, gaps=tuple(sorted(set(gaps))), seed=config.seed
+    )
+
+
+def round_of(step: int, config: TrainConfig) -> int:
+    """The round (from 1) that the step after ``step`` completed steps belongs to."""
+    return 1 + step // config.round_steps if config.round_steps else 1
+
+
+def pairs_folder(run_dir: Path, round_number: int) -> Path:
+    """Where a run caches the self-posed pairs of a round."""
+    folder = run_dir / PAIRS_DIR
+    return folder if round_number == 1 else folder / f"round-{round_number}"
 
 
 def discover_training_sequences(config: TrainConfig) -> list[Any]:
@@ -84,16 +103,26 @@ def discover_training_sequences(config: TrainConfig) -> list[Any]:
 
 
 def load_or_estimate_pairs(
-    config: TrainConfig, run_dir: Path, sequences: list[Any], progress=None
-) -> list[list[PseudoPair]]:
-    """Per sequence, the cached self-posed pairs of the run (estimated on first use)."""
-    folder = run_dir / PAIRS_DIR
+    config: TrainConfig,
+    run_dir: Path,
+    sequences: list[Any],
+    progress=None,
+    round_number: int = 1,
+    encoder: torch.nn.Module | None = None,
+) -> list[dict]:
+    """Per sequence, the cached self-posed pairs record of a round (estimated on first use).
+
+    Round 1 poses with the classical registration (or reuses ``config.pairs_from``); later
+    rounds use ``encoder`` as the global registration.
+    """
+    folder = pairs_folder(run_dir, round_number)
     folder.mkdir(parents=True, exist_ok=True)
-    settings = pseudo_config(config)
+    settings = pseudo_config(config, round_number)
+    learned = round_number > 1 and encoder is not None
     out = []
     for n, sequence in enumerate(sequences):
         path = folder / f"{n:02d}-{sequence.name}.json"
-        reused = _reusable(config, sequence, settings)
+        reused = _reusable(config, sequence, settings) if round_number == 1 else None
         if path.exists():
             record = json.loads(path.read_text(encoding="utf-8"))
         elif reused is not None:
@@ -101,18 +130,41 @@ def load_or_estimate_pairs(
             atomic_write_text(path, json.dumps(record, indent=1))
         else:
             t0 = time.perf_counter()
-            result = estimate_pairs(sequence, settings, progress)
+            start = LearnedStart(encoder, config.voxel_size, config.seed) if learned else None
+            result = estimate_pairs(sequence, settings, progress, global_start=start)
             record = pairs_to_json(result, settings, sequence)
+            record["round"] = round_number
+            record["global_start"] = "learned" if learned else "fpfh"
             record["seconds"] = round(time.perf_counter() - t0, 1)
             atomic_write_text(path, json.dumps(record, indent=1))
         log.info(
-            "%s: %d self-posed pairs (kept per gap %s)",
+            "round %d, %s: %d self-posed pairs (kept per gap %s)",
+            round_number,
             path.name,
             len(record["pairs"]),
             record["kept"],
         )
-        out.append(pairs_from_json(record))
+        out.append(record)
     return out
+
+
+def round_record(round_number: int, step: int, records: list[dict]) -> dict[str, Any]:
+    """The ``metrics.jsonl`` record of what a round keeps (per sequence, per gap)."""
+    return {
+        "kind": "round",
+        "round": round_number,
+        "step": step,
+        "pairs": sum(len(r["pairs"]) for r in records),
+        "sequences": {
+            r["name"]: {
+                "pairs": len(r["pairs"]),
+                "candidates": r["candidates"],
+                "kept": r["kept"],
+                "kept_learned_start": r["stats"].get("kept_learned_start", 0),
+            }
+            for r in records
+        },
+    }
 
 
 def _reusable(config: TrainConfig, sequence: Any, settings: PseudoPoseConfig) -> dict | None:
@@ -131,14 +183,19 @@ def _reusable(config: TrainConfig, sequence: Any, settings: PseudoPoseConfig) ->
 
 
 def build_frame_cache(
-    config: TrainConfig, sequences: list[Any], pairs: list[list[PseudoPair]]
+    config: TrainConfig,
+    sequences: list[Any],
+    pairs: list[list[PseudoPair]],
+    cache: dict[tuple[int, int], CachedFrame] | None = None,
 ) -> dict[tuple[int, int], CachedFrame]:
-    """``(sequence, frame) -> CachedFrame`` for every frame of a kept pair."""
-    cache: dict[tuple[int, int], CachedFrame] = {}
+    """``(sequence, frame) -> CachedFrame`` for every frame of a kept pair (frames already in
+    ``cache``, e.g. an earlier round's, are not read again)."""
+    cache = dict(cache or {})
     voxel = CACHE_VOXEL_FACTOR * config.voxel_size
     for s, (sequence, seq_pairs) in enumerate(zip(sequences, pairs, strict=True)):
         for f in sorted({p.i for p in seq_pairs} | {p.j for p in seq_pairs}):
-            cache[(s, f)] = cache_frame(frame_points(sequence, f), voxel)
+            if (s, f) not in cache:
+                cache[(s, f)] = cache_frame(frame_points(sequence, f), voxel)
     return cache
 
 
@@ -228,11 +285,6 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     sequences = discover_training_sequences(config)
     data_names = [str(s.root) for s in sequences]
     write_run_config(run_dir, config, {"world_size": 1, "data": data_names})
-    pairs = load_or_estimate_pairs(config, run_dir, sequences)
-    flat = [(s, p) for s, seq_pairs in enumerate(pairs) for p in seq_pairs]
-    if not flat:
-        raise DatasetError("no self-posed pair passed verification in the training data")
-    frames = build_frame_cache(config, sequences, pairs)
     val_pairs = validation_pairs(config) if config.val_dir else []
 
     with torch.random.fork_rng(devices=[]):
@@ -270,6 +322,25 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
         callbacks.call("on_validation", at_step, metrics)
         return metrics
 
+    frames: dict[tuple[int, int], CachedFrame] = {}
+
+    def load_round(number: int) -> list[tuple[int, PseudoPair]]:
+        nonlocal frames
+        records = load_or_estimate_pairs(
+            config, run_dir, sequences, round_number=number, encoder=encoder
+        )
+        pairs = [pairs_from_json(r) for r in records]
+        flat = [(s, p) for s, seq_pairs in enumerate(pairs) for p in seq_pairs]
+        if not flat:
+            raise DatasetError(
+                f"no self-posed pair passed verification in the training data (round {number})"
+            )
+        frames = build_frame_cache(config, sequences, pairs, frames)
+        logged = read_metrics(metrics_path) if metrics_path.exists() else []
+        if not any(r.get("kind") == "round" and r.get("round") == number for r in logged):
+            write_record(round_record(number, step, records))
+        return flat
+
     def checkpoint(at_step: int) -> None:
         state = {
             "model": encoder.state_dict(),
@@ -284,6 +355,8 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
         path = save_checkpoint(run_dir, at_step, state, keep=config.keep_checkpoints)
         callbacks.call("on_checkpoint", at_step, path)
 
+    current_round = round_of(step, config)
+    flat = load_round(current_round)
     callbacks.call("on_start", step, config.steps)
     if config.val_every and step == 0:
         result.initial_validation = result.validation = run_validation(0)
@@ -292,6 +365,9 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     t_window = time.perf_counter()
     try:
         while step < config.steps:
+            if round_of(step, config) != current_round:
+                current_round = round_of(step, config)
+                flat = load_round(current_round)
             pick = torch.randint(len(flat), (config.batch_size,), generator=generator)
             batch = []
             for k in pick.tolist():
@@ -329,7 +405,12 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
             if config.val_every and (step % config.val_every == 0 or last):
                 result.validation = run_validation(step)
                 plot_metrics(read_metrics(metrics_path), run_dir / PLOT_FILE, "self-posed")
-            if (config.checkpoint_every and step % config.checkpoint_every == 0) or last:
+            round_end = config.round_steps and step % config.round_steps == 0
+            if (
+                (config.checkpoint_every and step % config.checkpoint_every == 0)
+                or last
+                or round_end
+            ):
                 checkpoint(step)
     except KeyboardInterrupt:
         if step > 0:

@@ -102,8 +102,11 @@ def export_encoder(
             "aug_min_keep",
             "pair_gaps",
             "crop_radius",
+            "round_steps",
+            "round_gaps",
         )
     }
+    recipe["rounds"] = 1 + (steps - 1) // config.round_steps if config.round_steps and steps else 1
     return write_encoder(encoder, config, path, data, steps, metrics, recipe=recipe, dtype=dtype)
 
 
