@@ -168,6 +168,10 @@ def test_cli_self_posed_run_with_validation(shared_data, tmp_path, quiet):
     )
     assert result.exit_code == 0, result.output
     assert "feature-match recall" in result.output
+    # the closing summary names the self-posed figures (it once printed "rot@5deg -% -> -%")
+    summary = [line for line in result.output.splitlines() if "(start) ->" in line]
+    assert len(summary) == 1 and "byoc: validation feature-match recall" in summary[0]
+    assert "-%" not in summary[0]
     from byoc_cli.pipeline.weights import load_weights
 
     loaded = load_weights(tmp_path / "run" / "weights.safetensors")

@@ -46,6 +46,27 @@ def _fmt(value: float | None, spec: str = ".4f") -> str:
     return format(value, spec)
 
 
+def _validation_summary(start: dict[str, float], end: dict[str, float]) -> str:
+    """First and last validation figures of a run: pose accuracy for the paper's variants,
+    feature-match recall for ``self-posed`` (its validation measures that); "-" where a
+    figure is missing (a resumed run has no start)."""
+    if "fmr" in end:
+        first, second = ("fmr", "feature-match recall"), ("inlier_ratio", "inlier ratio")
+        scale = 100.0
+    else:
+        first, second = ("rot_acc_5", "rot@5deg"), ("inlier_pct_mean", "inlier correspondences")
+        scale = 1.0
+
+    def pct(metrics: dict[str, float], key: str) -> str:
+        value = metrics.get(key)
+        return _fmt(None if value is None else scale * value, ".1f")
+
+    return (
+        f"validation {first[1]} {pct(start, first[0])}% (start) -> {pct(end, first[0])}% "
+        f"(end); {second[1]} {pct(start, second[0])}% -> {pct(end, second[0])}%"
+    )
+
+
 class _Display:
     """Progress on stderr: a rich bar (default) or plain log lines (``--quiet``)."""
 
@@ -316,11 +337,7 @@ def train(
         )
         if result.validation:
             click.echo(
-                "byoc: validation rot@5deg "
-                f"{_fmt(result.initial_validation.get('rot_acc_5'), '.1f')}% "
-                f"(start) -> {_fmt(result.validation.get('rot_acc_5'), '.1f')}% (end); inlier "
-                f"correspondences {_fmt(result.initial_validation.get('inlier_pct_mean'), '.1f')}% "
-                f"-> {_fmt(result.validation.get('inlier_pct_mean'), '.1f')}%",
+                f"byoc: {_validation_summary(result.initial_validation, result.validation)}",
                 err=True,
             )
         write_stdout(f"{result.weights_path}\t{result.weights_sha256}\n")
