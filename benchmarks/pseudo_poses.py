@@ -64,6 +64,12 @@ def main() -> int:
         overrides["gaps"] = tuple(args.gaps)
     if args.start_stride:
         overrides["start_stride"] = args.start_stride
+    loaded, voxel = None, None
+    if args.weights:
+        from byoc_cli.pipeline.weights import load_weights
+
+        loaded = load_weights(args.weights)
+        voxel = float(loaded.metadata.get("voxel_size", PseudoPoseConfig().voxel_size))
     report = {}
     header = (
         f"{'sequence':22s} {'gap':>4s} {'tried':>6s} {'kept':>5s} {'share':>6s} "
@@ -93,13 +99,8 @@ def main() -> int:
                 config = PseudoPoseConfig(**overrides)
                 # the estimate sees a copy without poses, as training does
                 blind = discover_sequences(sequence.root, read_poses=False)[0]
-                start = None
-                if args.weights:
-                    from byoc_cli.pipeline.weights import load_weights
-
-                    loaded = load_weights(args.weights)
-                    voxel = float(loaded.metadata.get("voxel_size", config.voxel_size))
-                    start = LearnedStart(loaded.encoder, voxel, config.seed)
+                # a fresh start per sequence: its feature cache is keyed by frame position
+                start = LearnedStart(loaded.encoder, voxel, config.seed) if loaded else None
                 result = estimate_pairs(blind, config, global_start=start)
             seconds = time.perf_counter() - t0
             gt = [sequence.pose(i) for i in range(len(sequence.frames))]

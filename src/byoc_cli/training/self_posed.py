@@ -68,10 +68,10 @@ CACHE_VOXEL_FACTOR = 0.5
 
 def pseudo_config(config: TrainConfig, round_number: int = 1) -> PseudoPoseConfig:
     """The self-posing settings of a training configuration in round ``round_number``."""
-    gaps = config.pair_gaps + (config.round_gaps if round_number > 1 else ())
-    return PseudoPoseConfig(
-        voxel_size=config.voxel_size, gaps=tuple(sorted(set(gaps))), seed=config.seed
-    )
+    gaps = config.pair_gaps
+    if round_number > 1:
+        gaps += tuple(g for g in config.round_gaps if g not in config.pair_gaps)
+    return PseudoPoseConfig(voxel_size=config.voxel_size, gaps=gaps, seed=config.seed)
 
 
 def round_of(step: int, config: TrainConfig) -> int:

@@ -106,7 +106,9 @@ def export_encoder(
             "round_gaps",
         )
     }
-    recipe["rounds"] = 1 + (steps - 1) // config.round_steps if config.round_steps and steps else 1
+    from byoc_cli.training.self_posed import round_of  # (it imports this module)
+
+    recipe["rounds"] = round_of(max(steps - 1, 0), config)
     return write_encoder(encoder, config, path, data, steps, metrics, recipe=recipe, dtype=dtype)
 
 
