@@ -3,17 +3,21 @@
 Usage::
 
     python benchmarks/default_weights.py --out eval/ [--fragments DEV_FRAGMENTS]
-        [--columns byoc byoc-random fpfh fpfh-2.5cm] [--weights W ...] [--table-only]
+        [--columns byoc byoc-random fpfh fpfh-2.5cm] [--weights W ...] [--seeds 0 1 2]
+        [--table-only]
 
 Runs, for every pair set, the ``byoc eval-pairs`` / ``byoc eval-fmr`` commands it prints
 (one JSON per command in ``--out``; a JSON already there is reused if it was made with the
 same weights file, so columns can be run at different times), then prints the Markdown table
 of the README: rotation accuracy at 5 deg and translation accuracy at 10 cm on the RGB-D
 pair sets; FMR, corr-FMR and registration recall (official) on the fragment sets.
-``--weights`` adds a column per file (e.g. the best paper-recipe weights). Pair sets:
+``--weights`` adds a column per file (e.g. the best paper-recipe weights). ``--seeds`` runs
+every command at each seed (``--seed``: RANSAC's samples, the points sampled per cloud) and
+prints the median and, in brackets, the lowest and highest figure over the seeds. Pair sets:
 ``tum_fr1_desk_full`` at spacing 10 and 20, ``tum_fr3_cabinet`` at spacing 2,
 ``realsense_tabletop`` at spacing 5, the fragments made from ``tum_fr1_desk_full`` (``byoc
-make-fragments ... --frames-per-fragment 25``) and the 3DMatch sample.
+make-fragments ... --frames-per-fragment 25``) and the 3DMatch sample (its 3DMatch pairs, overlap
+above 30 %, and its 3DLoMatch pairs, 10 to 30 %).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import functools
 import hashlib
 import json
 import shlex
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -49,8 +54,19 @@ def _column_args(column: str) -> tuple[list[str], str]:
     return ["--method", "byoc", "--weights", column], "byoc"
 
 
-def _slug(column: str) -> str:
-    return Path(column).stem if column.endswith(".safetensors") else column
+def _slug(column: str, seed: int = 0) -> str:
+    """The JSON name part of a column at a seed (seed 0 has none: the single-seed files)."""
+    name = Path(column).stem if column.endswith(".safetensors") else column
+    return name if seed == 0 else f"{name}-seed{seed}"
+
+
+def _figure(values: list[float]) -> str:
+    """A percentage over seeds: the value, or the median and [lowest-highest] of several."""
+    if len(values) == 1:
+        return f"{values[0]:.1f}"
+    ordered = sorted(values)
+    median = statistics.median(ordered)
+    return f"{median:.1f} [{ordered[0]:.1f}-{ordered[-1]:.1f}]"
 
 
 @functools.cache
@@ -94,6 +110,7 @@ def main() -> int:
         "--columns", nargs="+", default=["byoc", "fpfh", "fpfh-2.5cm", "byoc-random"]
     )
     parser.add_argument("--weights", type=Path, nargs="*", default=[])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--table-only", action="store_true")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -110,34 +127,43 @@ def main() -> int:
         cells = []
         for column in columns:
             extra, method = _column_args(column)
-            out = args.out / f"pairs-{Path(rel).name}-{spacing}-{_slug(column)}.json"
-            command = [
-                "byoc",
-                "eval-pairs",
-                "--rgbd-dir",
-                str(DATA / rel),
-                "--spacing",
-                str(spacing),
-                *extra,
-                "--json",
-                str(out),
-                "--quiet",
-            ]
-            if args.table_only and not _reusable(out, _weights_sha256(column)):
+            runs = []
+            for seed in args.seeds:
+                out = args.out / f"pairs-{Path(rel).name}-{spacing}-{_slug(column, seed)}.json"
+                command = [
+                    "byoc",
+                    "eval-pairs",
+                    "--rgbd-dir",
+                    str(DATA / rel),
+                    "--spacing",
+                    str(spacing),
+                    *extra,
+                    *(["--seed", str(seed)] if seed else []),
+                    "--json",
+                    str(out),
+                    "--quiet",
+                ]
+                if args.table_only and not _reusable(out, _weights_sha256(column)):
+                    continue
+                runs.append(_run(command, out, _weights_sha256(column))["results"][method])
+            if len(runs) < len(args.seeds):
                 cells.append("-")
                 continue
-            r = _run(command, out, _weights_sha256(column))["results"][method]
-            cells.append(
-                f"{r['rotation_deg']['accuracy_percent']['5']:.1f} / "
-                f"{r['translation_cm']['accuracy_percent']['10']:.1f}"
-            )
+            rot = [r["rotation_deg"]["accuracy_percent"]["5"] for r in runs]
+            trans = [r["translation_cm"]["accuracy_percent"]["10"] for r in runs]
+            cells.append(f"{_figure(rot)} / {_figure(trans)}")
         rows.append((f"{name}: rot@5° / trans@10cm %", cells))
     fragment_sets = [
         (
             "3DMatch sample",
             DATA / "3dmatch/sample/3DMatch",
             ["--gt-dir", str(DATA / "3dmatch/benchmarks/3DMatch")],
-        )
+        ),
+        (
+            "3DLoMatch sample",
+            DATA / "3dmatch/sample/3DLoMatch",
+            ["--gt-dir", str(DATA / "3dmatch/benchmarks/3DLoMatch")],
+        ),
     ]
     if args.fragments:
         fragment_sets.insert(0, ("fragments of tum_fr1_desk_full", args.fragments, []))
@@ -145,16 +171,25 @@ def main() -> int:
         cells = []
         for column in columns:
             extra, method = _column_args(column)
-            out = args.out / f"fmr-{Path(root).name}-{_slug(column)}.json"
-            command = ["byoc", "eval-fmr", str(root), *gt, *extra, "--json", str(out), "--quiet"]
-            if args.table_only and not _reusable(out, _weights_sha256(column)):
+            runs = []
+            for seed in args.seeds:
+                out = args.out / f"fmr-{Path(root).name}-{_slug(column, seed)}.json"
+                seeded = ["--seed", str(seed)] if seed else []
+                command = [
+                    "byoc", "eval-fmr", str(root), *gt, *extra, *seeded,
+                    "--json", str(out), "--quiet",
+                ]  # fmt: skip
+                if args.table_only and not _reusable(out, _weights_sha256(column)):
+                    continue
+                runs.append(_run(command, out, _weights_sha256(column))["results"][method])
+            if len(runs) < len(args.seeds):
                 cells.append("-")
                 continue
-            r = _run(command, out, _weights_sha256(column))["results"][method]
-            cells.append(
-                f"{100 * r['fmr']['pooled']:.1f} / {100 * r['corr_fmr']['pooled']:.1f} / "
-                f"{100 * r['registration_recall']['pooled']:.1f}"
-            )
+            figures = [
+                [100 * r[key]["pooled"] for r in runs]
+                for key in ("fmr", "corr_fmr", "registration_recall")
+            ]
+            cells.append(" / ".join(_figure(f) for f in figures))
         rows.append((f"{name}: FMR / corr-FMR / RR %", cells))
     header = "| pair set | " + " | ".join(labels.get(c, Path(c).name) for c in columns) + " |"
     print(header)
