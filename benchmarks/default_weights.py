@@ -35,6 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 
+NAMED_COLUMNS = ("byoc", "byoc-random", "fpfh", "fpfh-2.5cm")
 PAIR_SETS = [
     ("tum_fr1_desk_full, spacing 10", "rgbd/tum_fr1_desk_full", 10),
     ("tum_fr1_desk_full, spacing 20", "rgbd/tum_fr1_desk_full", 20),
@@ -67,6 +68,18 @@ def _figure(values: list[float]) -> str:
     ordered = sorted(values)
     median = statistics.median(ordered)
     return f"{median:.1f} [{ordered[0]:.1f}-{ordered[-1]:.1f}]"
+
+
+def _check_inputs(columns: list[str], fragments: Path | None) -> str | None:
+    """What is wrong with the columns and fragments asked for, before anything runs (None: all
+    good): a column is one of the named ones or an existing weights file."""
+    for column in columns:
+        if column not in NAMED_COLUMNS and not Path(column).is_file():
+            named = ", ".join(NAMED_COLUMNS)
+            return f"column {column!r}: neither {named} nor an existing weights file"
+    if fragments is not None and not fragments.is_dir():
+        return f"--fragments {fragments}: no such folder"
+    return None
 
 
 @functools.cache
@@ -113,8 +126,11 @@ def main() -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--table-only", action="store_true")
     args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
     columns = list(args.columns) + [str(w) for w in args.weights]
+    problem = _check_inputs(columns, args.fragments)
+    if problem:
+        parser.error(problem)
+    args.out.mkdir(parents=True, exist_ok=True)
     labels = {
         "byoc": "shipped default",
         "byoc-random": "random init",

@@ -1,0 +1,44 @@
+"""Benchmark scripts refuse bad arguments before they run anything."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _default_weights(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    script = ROOT / "benchmarks" / "default_weights.py"
+    out = tmp_path / "eval"
+    return subprocess.run(
+        [sys.executable, str(script), "--out", str(out), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_default_weights_refuses_an_unknown_column_before_running(tmp_path):
+    result = _default_weights(tmp_path, "--columns", "byoc", "random")
+    assert result.returncode == 2
+    assert "column 'random': neither byoc, byoc-random" in result.stderr
+    assert "$ byoc" not in result.stderr  # no command ran
+    assert not (tmp_path / "eval").exists()
+
+
+def test_default_weights_refuses_a_missing_fragments_folder(tmp_path):
+    result = _default_weights(tmp_path, "--fragments", str(tmp_path / "absent"))
+    assert result.returncode == 2
+    assert f"--fragments {tmp_path / 'absent'}: no such folder" in result.stderr
+    assert not (tmp_path / "eval").exists()
+
+
+def test_default_weights_takes_a_weights_file_as_a_column(tmp_path):
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(b"")
+    # a valid column passes the check; --table-only with no JSON runs nothing and prints "-"
+    result = _default_weights(tmp_path, "--columns", str(weights), "--table-only")
+    assert result.returncode == 0, result.stderr
+    assert "| w.safetensors |" in result.stdout.splitlines()[0]
