@@ -75,6 +75,22 @@ def test_range_errors():
         TrainConfig(round_steps=-1)
     with pytest.raises(ValueError, match="round_gaps"):
         TrainConfig(round_gaps=(0,))
+    with pytest.raises(ValueError, match="loss must be one of infonce, hardest-contrastive"):
+        TrainConfig(loss="triplet")
+    with pytest.raises(ValueError, match="pos_margin and neg_margin"):
+        TrainConfig(pos_margin=1.5, neg_margin=1.4)
+    with pytest.raises(ValueError, match="pos_margin and neg_margin"):
+        TrainConfig(neg_margin=2.5)
+
+
+def test_loss_from_a_file(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text('loss = "hardest-contrastive"\nneg_margin = 1.2\n')
+    config = TrainConfig(**load_config_file(path))
+    assert (config.loss, config.pos_margin, config.neg_margin) == ("hardest-contrastive", 0.1, 1.2)
+    path.write_text("loss = 3\n")
+    with pytest.raises(InputError, match="'loss' must be a string"):
+        load_config_file(path)
 
 
 def test_round_gaps_from_a_file(tmp_path):

@@ -210,6 +210,38 @@ def test_pairs_from_reuses_an_earlier_runs_pairs(sequence_copies, tmp_path, monk
         )
 
 
+def test_hardest_contrastive_loss_trains_and_is_recorded(sequence_copies, tmp_path, monkeypatch):
+    data, _ = sequence_copies
+    first = train(_config(data, tmp_path / "infonce", steps=2))
+    import byoc_cli.training.self_posed as sp
+
+    calls = []
+    real = sp.hardest_contrastive
+
+    def counting(*args, **kw):
+        calls.append(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(sp, "hardest_contrastive", counting)
+    options = dict(steps=2, loss="hardest-contrastive", neg_margin=1.2)
+    second = train(_config(data, tmp_path / "hc", pairs_from=str(tmp_path / "infonce"), **options))
+    # batch 2, 2 steps: one call per pair, with the configured margins
+    assert len(calls) == 4 and all(c["neg_margin"] == 1.2 for c in calls)
+    assert second.steps == 2
+    from byoc_cli.pipeline.weights import load_weights
+
+    recipe = load_weights(tmp_path / "hc" / "weights.safetensors").metadata["training"]["recipe"]
+    assert (recipe["loss"], recipe["pos_margin"], recipe["neg_margin"]) == (
+        "hardest-contrastive",
+        0.1,
+        1.2,
+    )
+    a = load_file(str(tmp_path / "infonce" / "weights.safetensors"))
+    b = load_file(str(tmp_path / "hc" / "weights.safetensors"))
+    assert any(not torch.equal(a[k], b[k]) for k in a)  # same seed and pairs, other loss
+    assert first.steps == 2
+
+
 def test_rounds_pose_again_with_the_trained_encoder_and_resume_exactly(sequence_copies, tmp_path):
     import json
 

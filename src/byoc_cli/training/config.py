@@ -22,6 +22,8 @@ VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed")
 VISUAL_VARIANTS = ("byoc", "byoc-vis", "byoc-rot")
 #: variants with a geometric branch
 GEOMETRIC_VARIANTS = ("byoc", "byoc-geo", "byoc-rot", "self-posed")
+#: metric losses of the ``self-posed`` variant
+METRIC_LOSSES = ("infonce", "hardest-contrastive")
 
 #: keys that may change when a run is resumed; every other key is fixed by the run
 RESUMABLE_KEYS = frozenset(
@@ -72,8 +74,11 @@ class TrainConfig:
         depth_scale: depth units per metre (None = the layout's convention).
         rot_max_angle_deg, rot_max_translation: byoc-rot augmentation ranges.
         keep_checkpoints: how many most recent checkpoints to keep.
-        num_positives: ``self-posed``: correspondences per pair in the InfoNCE loss.
+        num_positives: ``self-posed``: correspondences per pair in the metric loss.
+        loss: ``self-posed``: the metric loss, ``infonce`` (symmetric InfoNCE) or
+            ``hardest-contrastive`` (FCGF's, with ``pos_margin`` and ``neg_margin``).
         temperature: ``self-posed``: InfoNCE temperature.
+        pos_margin, neg_margin: ``self-posed``: hardest-contrastive margins (feature distance).
         aug_rotation_deg: ``self-posed``: each view is rotated by an angle up to this.
         aug_scale: ``self-posed``: shared scale jitter ``1 +- aug_scale``.
         aug_min_keep: ``self-posed``: each view keeps a random share >= this of its points.
@@ -121,7 +126,10 @@ class TrainConfig:
     rot_max_translation: float = 0.5
     keep_checkpoints: int = 2
     num_positives: int = 1024
+    loss: str = "infonce"
     temperature: float = 0.1
+    pos_margin: float = 0.1
+    neg_margin: float = 1.4
     aug_rotation_deg: float = 60.0
     aug_scale: float = 0.05
     aug_min_keep: float = 0.7
@@ -172,6 +180,13 @@ class TrainConfig:
         for name in ("lr", "adam_eps", "voxel_size", "temperature"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.loss not in METRIC_LOSSES:
+            problems.append(f"loss must be one of {', '.join(METRIC_LOSSES)}, got {self.loss!r}")
+        if not 0 <= self.pos_margin < self.neg_margin <= 2:
+            problems.append(
+                "pos_margin and neg_margin must satisfy 0 <= pos_margin < neg_margin <= 2, got "
+                f"{self.pos_margin} and {self.neg_margin}"
+            )
         if self.weight_decay < 0:
             problems.append(f"weight_decay must be >= 0, got {self.weight_decay}")
         if self.device not in ("auto", "cpu", "cuda"):

@@ -9,8 +9,9 @@ far as the global registration (:class:`~byoc_cli.training.pseudo_poses.LearnedS
 the wider ``round_gaps`` added, cached in ``pseudo_pairs/round-r/``; each round's kept pairs
 are logged (``metrics.jsonl``, records of kind ``round``). Each step draws ``batch_size``
 pairs, makes two augmented views of each (:mod:`byoc_cli.training.self_posed_data`), encodes
-all views in one batched sparse forward pass and applies a symmetric InfoNCE loss on up to
-``num_positives`` dense correspondences per pair. Validation (``val_dir``, posed sequences)
+all views in one batched sparse forward pass and applies the metric loss ``loss`` (symmetric
+InfoNCE, or FCGF's hardest-contrastive) on up to ``num_positives`` dense correspondences per
+pair. Validation (``val_dir``, posed sequences)
 measures the feature-match recall of frame pairs ``val_spacing`` frames apart.
 
 The run folder, checkpoints, metrics and exported weights follow the other variants
@@ -37,7 +38,7 @@ from byoc_cli.training.checkpoint import (
     save_checkpoint,
 )
 from byoc_cli.training.config import TrainConfig
-from byoc_cli.training.metric_loss import info_nce, sample_matches
+from byoc_cli.training.metric_loss import hardest_contrastive, info_nce, sample_matches
 from byoc_cli.training.pseudo_poses import (
     LearnedStart,
     PseudoPair,
@@ -209,6 +210,26 @@ def encode_views(encoder: torch.nn.Module, coords: list[torch.Tensor]) -> list[t
     return list(torch.split(out, [len(c) for c in coords]))
 
 
+def metric_loss(
+    feats_i: torch.Tensor,
+    feats_j: torch.Tensor,
+    matches: torch.Tensor,
+    points_i: torch.Tensor,
+    config: TrainConfig,
+) -> torch.Tensor:
+    """The loss ``config.loss`` of one pair (shapes as :func:`metric_loss.info_nce`)."""
+    if config.loss == "hardest-contrastive":
+        return hardest_contrastive(
+            feats_i,
+            feats_j,
+            matches,
+            points_i,
+            pos_margin=config.pos_margin,
+            neg_margin=config.neg_margin,
+        )
+    return info_nce(feats_i, feats_j, matches, points_i, temperature=config.temperature)
+
+
 def training_step(
     encoder: torch.nn.Module,
     batch: list[tuple[CachedFrame, CachedFrame, torch.Tensor]],
@@ -229,15 +250,7 @@ def training_step(
     for n, v in enumerate(views):
         matches = sample_matches(v.matches, config.num_positives, generator)
         positives.append(len(matches))
-        losses.append(
-            info_nce(
-                feats[2 * n],
-                feats[2 * n + 1],
-                matches,
-                v.view_i.points,
-                temperature=config.temperature,
-            )
-        )
+        losses.append(metric_loss(feats[2 * n], feats[2 * n + 1], matches, v.view_i.points, config))
     loss = torch.stack(losses).mean()
     points = float(np.mean([len(c) for c in coords]))
     return loss, {
