@@ -67,6 +67,22 @@ def test_misspelled_config_key_is_exit_1(tmp_path):
     assert "num_correspondences" in result.stderr and str(cfg) in result.stderr
 
 
+def test_out_of_range_config_value_is_a_usage_error_naming_the_file(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('loss = "triplet"\n')
+    result = _run(["--config", str(cfg), "--rgbd-dir", str(tmp_path), "--out", str(tmp_path / "r")])
+    assert result.exit_code == 2
+    assert f"{cfg}: loss must be one of infonce, hardest-contrastive" in result.stderr
+    assert not (tmp_path / "r").exists()
+    # an error about a value the flags set (overriding the file, or not in it) does not blame it
+    from byoc_cli.cli.train import _blame_file
+
+    message = "lr must be > 0, got -1.0"
+    assert _blame_file(message, cfg, {"lr": 1e-3}, {"lr": -1.0}) == message
+    assert _blame_file(message, cfg, {"steps": 5}, {"lr": -1.0}) == message
+    assert _blame_file(message, cfg, {"lr": -1.0}, {}) == f"{cfg}: {message}"
+
+
 def test_resume_of_a_non_run_is_exit_1(tmp_path):
     result = _run(["--resume", str(tmp_path / "nope")])
     assert result.exit_code == 1 and str(tmp_path / "nope") in result.stderr

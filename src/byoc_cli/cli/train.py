@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import signal
 import threading
 from pathlib import Path
@@ -208,6 +209,17 @@ _SWITCHES = (
 )
 
 
+def _blame_file(
+    message: str, path: Path | None, file_values: dict | None, explicit: dict[str, Any]
+) -> str:
+    """Prefix a range error with the config file when a key it names came from that file."""
+    if path is None or not file_values:
+        return message
+    from_file = {k for k in file_values if k not in explicit}
+    named = set(re.findall(r"[a-z][a-z0-9_]*", message))
+    return f"{path}: {message}" if from_file & named else message
+
+
 @click.command(
     "train",
     epilog="Settings: built-in defaults < --config FILE (TOML, same key names with "
@@ -283,6 +295,7 @@ def train(
     from byoc_cli.training.trainer import train as run_training
 
     explicit = _explicit(ctx, flags)
+    file_values = None
     try:
         if resume is not None:
             if config_path is not None:
@@ -296,7 +309,7 @@ def train(
             file_values = load_config_file(config_path) if config_path is not None else None
             config = resolve_config(file_values, explicit)
     except ValueError as exc:
-        raise click.UsageError(str(exc)) from exc
+        raise click.UsageError(_blame_file(str(exc), config_path, file_values, explicit)) from exc
     if not config.rgbd_dir:
         raise click.UsageError("no training data: give --rgbd-dir (or rgbd_dir in --config)")
     if config.arch:
