@@ -20,6 +20,21 @@ def sample_matches(matches: torch.Tensor, count: int, generator: torch.Generator
     return matches[pick.to(matches.device)]
 
 
+def _matched(
+    feats_i: torch.Tensor,
+    feats_j: torch.Tensor,
+    matches: torch.Tensor,
+    points_i: torch.Tensor,
+    safe_radius: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The matched features ``a (K, C)``, ``b (K, C)`` and ``near (K, K)``: bool, True where two
+    positives' points of view ``i`` lie within ``safe_radius`` (False on the diagonal)."""
+    p = points_i[matches[:, 0]]
+    near = torch.cdist(p, p) < safe_radius
+    near.fill_diagonal_(False)
+    return feats_i[matches[:, 0]], feats_j[matches[:, 1]], near
+
+
 def info_nce(
     feats_i: torch.Tensor,
     feats_j: torch.Tensor,
@@ -41,13 +56,8 @@ def info_nce(
     """
     if len(matches) < 2:
         return feats_i.sum() * 0.0 + feats_j.sum() * 0.0
-    a = feats_i[matches[:, 0]]
-    b = feats_j[matches[:, 1]]
-    logits = a @ b.T / temperature
-    p = points_i[matches[:, 0]]
-    near = torch.cdist(p, p) < safe_radius
-    near.fill_diagonal_(False)
-    logits = logits.masked_fill(near, float("-inf"))
+    a, b, near = _matched(feats_i, feats_j, matches, points_i, safe_radius)
+    logits = (a @ b.T / temperature).masked_fill(near, float("-inf"))
     target = torch.arange(len(matches), device=logits.device)
     return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
 
@@ -76,15 +86,12 @@ def hardest_contrastive(
     """
     if len(matches) < 2:
         return feats_i.sum() * 0.0 + feats_j.sum() * 0.0
-    a = feats_i[matches[:, 0]]
-    b = feats_j[matches[:, 1]]
+    a, b, near = _matched(feats_i, feats_j, matches, points_i, safe_radius)
     # (K, K) feature distances; the clamp keeps the square root's gradient finite at 0
     square = a.pow(2).sum(1, keepdim=True) + b.pow(2).sum(1)[None, :] - 2.0 * (a @ b.T)
     dist = square.clamp_min(1e-12).sqrt()
     pos = F.relu(dist.diagonal() - pos_margin).pow(2).mean()
-    p = points_i[matches[:, 0]]
-    near = torch.cdist(p, p) < safe_radius
-    near.fill_diagonal_(True)
+    near.fill_diagonal_(True)  # the positive is no negative either
     far = dist.masked_fill(near, float("inf"))
     hardest_i = far.min(dim=1).values
     hardest_j = far.min(dim=0).values
