@@ -11,8 +11,8 @@ are logged (``metrics.jsonl``, records of kind ``round``). Each step draws ``bat
 pairs, makes two augmented views of each (:mod:`byoc_cli.training.self_posed_data`), encodes
 all views in one batched sparse forward pass and applies the metric loss ``loss`` (symmetric
 InfoNCE, or FCGF's hardest-contrastive) on up to ``num_positives`` dense correspondences per
-pair. Validation (``val_dir``, posed sequences)
-measures the feature-match recall of frame pairs ``val_spacing`` frames apart.
+pair. Validation (``val_dir``, posed sequences) measures the feature-match recall of frame
+pairs ``val_spacing`` frames apart.
 
 The run folder, checkpoints, metrics and exported weights follow the other variants
 (:mod:`byoc_cli.training.trainer`).
@@ -210,14 +210,14 @@ def encode_views(encoder: torch.nn.Module, coords: list[torch.Tensor]) -> list[t
     return list(torch.split(out, [len(c) for c in coords]))
 
 
-def metric_loss(
+def pair_loss(
     feats_i: torch.Tensor,
     feats_j: torch.Tensor,
     matches: torch.Tensor,
     points_i: torch.Tensor,
     config: TrainConfig,
 ) -> torch.Tensor:
-    """The loss ``config.loss`` of one pair (shapes as :func:`metric_loss.info_nce`)."""
+    """The loss ``config.loss`` of one pair (shapes as in :mod:`byoc_cli.training.metric_loss`)."""
     if config.loss == "hardest-contrastive":
         return hardest_contrastive(
             feats_i,
@@ -250,7 +250,7 @@ def training_step(
     for n, v in enumerate(views):
         matches = sample_matches(v.matches, config.num_positives, generator)
         positives.append(len(matches))
-        losses.append(metric_loss(feats[2 * n], feats[2 * n + 1], matches, v.view_i.points, config))
+        losses.append(pair_loss(feats[2 * n], feats[2 * n + 1], matches, v.view_i.points, config))
     loss = torch.stack(losses).mean()
     points = float(np.mean([len(c) for c in coords]))
     return loss, {
