@@ -115,6 +115,44 @@ def _run(command: list[str], out: Path, sha256: str | None = None) -> dict:
     return json.loads(out.read_text())
 
 
+def _pairs_job(
+    out_dir: Path, rel: str, spacing: int, column: str, extra: list[str], seed: int
+) -> tuple[Path, list[str]]:
+    """The JSON path and ``byoc eval-pairs`` command of a column on a pair set at a seed."""
+    out = out_dir / f"pairs-{Path(rel).name}-{spacing}-{_slug(column, seed)}.json"
+    seeded = ["--seed", str(seed)] if seed else []
+    command = [
+        "byoc", "eval-pairs", "--rgbd-dir", str(DATA / rel), "--spacing", str(spacing),
+        *extra, *seeded, "--json", str(out), "--quiet",
+    ]  # fmt: skip
+    return out, command
+
+
+def _fmr_job(
+    out_dir: Path, root: Path, gt: list[str], column: str, extra: list[str], seed: int
+) -> tuple[Path, list[str]]:
+    """The JSON path and ``byoc eval-fmr`` command of a column on a fragment set at a seed."""
+    out = out_dir / f"fmr-{Path(root).name}-{_slug(column, seed)}.json"
+    seeded = ["--seed", str(seed)] if seed else []
+    command = [
+        "byoc", "eval-fmr", str(root), *gt, *extra, *seeded, "--json", str(out), "--quiet",
+    ]  # fmt: skip
+    return out, command
+
+
+def _over_seeds(args: argparse.Namespace, column: str, method: str, job) -> list[dict] | None:
+    """The results of ``method`` for every seed of ``--seeds``; ``job(seed)`` gives the JSON path
+    and the command. None when ``--table-only`` finds a seed's JSON missing (a "-" cell)."""
+    sha256 = _weights_sha256(column)
+    runs = []
+    for seed in args.seeds:
+        out, command = job(seed)
+        if args.table_only and not _reusable(out, sha256):
+            return None
+        runs.append(_run(command, out, sha256)["results"][method])
+    return runs
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -143,26 +181,9 @@ def main() -> int:
         cells = []
         for column in columns:
             extra, method = _column_args(column)
-            runs = []
-            for seed in args.seeds:
-                out = args.out / f"pairs-{Path(rel).name}-{spacing}-{_slug(column, seed)}.json"
-                command = [
-                    "byoc",
-                    "eval-pairs",
-                    "--rgbd-dir",
-                    str(DATA / rel),
-                    "--spacing",
-                    str(spacing),
-                    *extra,
-                    *(["--seed", str(seed)] if seed else []),
-                    "--json",
-                    str(out),
-                    "--quiet",
-                ]
-                if args.table_only and not _reusable(out, _weights_sha256(column)):
-                    continue
-                runs.append(_run(command, out, _weights_sha256(column))["results"][method])
-            if len(runs) < len(args.seeds):
+            job = functools.partial(_pairs_job, args.out, rel, spacing, column, extra)
+            runs = _over_seeds(args, column, method, job)
+            if runs is None:
                 cells.append("-")
                 continue
             rot = [r["rotation_deg"]["accuracy_percent"]["5"] for r in runs]
@@ -187,18 +208,9 @@ def main() -> int:
         cells = []
         for column in columns:
             extra, method = _column_args(column)
-            runs = []
-            for seed in args.seeds:
-                out = args.out / f"fmr-{Path(root).name}-{_slug(column, seed)}.json"
-                seeded = ["--seed", str(seed)] if seed else []
-                command = [
-                    "byoc", "eval-fmr", str(root), *gt, *extra, *seeded,
-                    "--json", str(out), "--quiet",
-                ]  # fmt: skip
-                if args.table_only and not _reusable(out, _weights_sha256(column)):
-                    continue
-                runs.append(_run(command, out, _weights_sha256(column))["results"][method])
-            if len(runs) < len(args.seeds):
+            job = functools.partial(_fmr_job, args.out, root, gt, column, extra)
+            runs = _over_seeds(args, column, method, job)
+            if runs is None:
                 cells.append("-")
                 continue
             figures = [
