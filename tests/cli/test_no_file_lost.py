@@ -179,3 +179,27 @@ def test_every_command_is_exercised():
         *("register-scans", "odometry"),
     }
     assert {run[1] for run in FAILING_RUNS.values() if run[0] == "weights"} == {"info", "init"}
+
+
+@pytest.mark.parametrize("shard", ["1/2", "2/2", None])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_shard_never_writes_over_an_input_of_another_shard(work, shard, overwrite, monkeypatch):
+    """Line 2 names ``s.ply`` (line 1's source) as its T file: every shard refuses the list,
+    with or without --overwrite, and no file changes (it used to replace s.ply in shard 2/2,
+    and count it as "skipped (T file exists)" without --overwrite)."""
+    monkeypatch.chdir(work)
+    listing = work / "pairs.txt"
+    listing.write_text("s.ply t.ply T1.txt\naligned.ply t.ply s.ply\n")
+    before = _snapshot(work)
+    args = ["register-batch", "pairs.txt", "--features", "fpfh"]
+    args += ["--shard", shard] if shard else []
+    args += ["--overwrite"] if overwrite else []
+    try:
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 1, (result.exit_code, result.output)
+        errors = [line for line in result.stderr.splitlines() if line.startswith("byoc: error")]
+        assert len(errors) == 1 and "s.ply" in errors[0], result.stderr
+        assert "input" in errors[0]
+        assert _snapshot(work) == before
+    finally:
+        listing.unlink()

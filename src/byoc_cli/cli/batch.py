@@ -147,24 +147,30 @@ def register_batch(
     out_dir = pairs.parent if out_dir is None else out_dir
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(out_dir, "is not a folder (--out-dir)")
-    planned = _plan(entries, out_dir)
+    # The whole list's inputs and outputs are checked whatever the shard: an output of this
+    # shard may be an input of another one (or name the same file as another shard's output).
+    whole = _plan(entries, out_dir)
+    inputs = [pairs, intrinsics, weights, *(p for e, _ in whole for p in (e.source, e.target))]
+    planned = whole
     if shard is not None:
-        planned = [planned[e.index] for e in take_shard(entries, shard[0] - 1, shard[1])]
+        planned = [whole[e.index] for e in take_shard(entries, shard[0] - 1, shard[1])]
     check_depth_inputs(
         [p for entry, _ in planned for p in (entry.source, entry.target)], intrinsics
     )
     if summary is None:
         name = "summary.jsonl" if shard is None else f"summary.shard-{shard[0]}-of-{shard[1]}.jsonl"
         summary = out_dir / name
-    inputs = [pairs, intrinsics, weights, *(p for e, _ in planned for p in (e.source, e.target))]
+    mine = {entry.index for entry, _ in planned}
     todo, skipped = [], []
     made = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
         policy = OutputSet(inputs)
         policy.claim(summary)
-        for entry, output in planned:
+        for entry, output in whole:
             policy.claim(output)  # every output is checked before the first pair runs
+            if entry.index not in mine:
+                continue
             if output.exists() and not overwrite:
                 skipped.append((entry, output))
             else:
