@@ -82,10 +82,13 @@ def test_scale_keeps_the_input_units():
     src_mm = _cube(1) * 1000
     tgt_mm, T = _moved(_cube(1))
     tgt_mm = tgt_mm * 1000
-    with pytest.raises(InputError, match="millimetres"):
-        byoc_cli.register(src_mm, tgt_mm, features="fpfh")
+    with pytest.raises(InputError, match="millimetres"):  # a fixed voxel in metres
+        byoc_cli.register(src_mm, tgt_mm, features="fpfh", voxel_size=None)
     result = byoc_cli.register(src_mm, tgt_mm, features="fpfh", scale=0.001)
     assert np.abs(result.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm
+    auto = byoc_cli.register(src_mm, tgt_mm, features="fpfh")  # the auto voxel reads the units
+    assert auto.voxel_choice["voxel_size"] == pytest.approx(auto.voxel_size)
+    assert np.abs(auto.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm
 
 
 def test_extract_features_and_registrar_reuse():
@@ -96,12 +99,18 @@ def test_extract_features_and_registrar_reuse():
     assert feats.feats.shape[0] == m and feats.feats.dtype == np.float32
     assert np.allclose(np.linalg.norm(feats.feats, axis=1), 1.0, atol=1e-5)
     assert np.array_equal(_cube()[feats.point_index], feats.points)
-    assert feats.voxel_size == registrar.voxel_size and feats.scale == 1.0
+    assert feats.voxel_size == registrar.choose_voxel(_cube()).voxel_size and feats.scale == 1.0
     same = byoc_cli.extract_features(_cube(), weights=byoc_cli.load_weights())
     assert np.array_equal(same.feats, feats.feats)
     other = byoc_cli.Registrar("fpfh").extract(_cube())
     with pytest.raises(ValueError, match="same features"):
         registrar.match(feats, other)
+    # extracted one at a time, two clouds may choose different auto voxels: match extracts
+    # both again at the pair's voxel
+    apart = registrar.extract(_cube(1)[::3])
+    assert apart.voxel_size != feats.voxel_size
+    result = registrar.match(feats, apart)
+    assert result.voxel_size == registrar.choose_voxel(_cube(), _cube(1)[::3]).voxel_size
 
 
 @pytest.mark.parametrize(
@@ -127,7 +136,7 @@ def test_missing_file_is_an_input_error(tmp_path: Path):
 def test_multiscale_refinement_runs_on_the_full_cloud_and_with_kept_points_alone():
     src = _cube(2)
     tgt, T = _moved(_cube(3))
-    registrar = byoc_cli.Registrar("fpfh")
+    registrar = byoc_cli.Registrar("fpfh", voxel_size=None)  # features kept in files: one voxel
     f_src, f_tgt = registrar.extract(src), registrar.extract(tgt)
     assert np.array_equal(f_src.cloud, src) and np.array_equal(f_tgt.cloud, tgt)
     full = registrar.match(f_src, f_tgt, refine="multiscale")

@@ -52,7 +52,10 @@ class Registrar:
         features: ``"byoc"`` (the learned encoder) or ``"fpfh"`` (Open3D FPFH).
         weights: for byoc: a weights file, a :func:`load_weights` result, or None for the
             shipped weights.
-        voxel_size: metres; None: the weights' voxel size (byoc) or the fpfh default.
+        voxel_size: ``"auto"`` (default): read from each pair's clouds, in their own units
+            (:mod:`byoc_cli.pipeline.scale`); a number: that voxel, in the units of the
+            points; None: the features' own voxel (the weights' voxel size for byoc, 5 cm for
+            fpfh), with the unit check of :func:`load_cloud`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
 
     Raises:
@@ -64,7 +67,7 @@ class Registrar:
         self,
         features: str = "byoc",
         weights: str | os.PathLike[str] | LoadedWeights | None = None,
-        voxel_size: float | None = None,
+        voxel_size: float | str | None = "auto",
         device: str = "auto",
     ) -> None:
         from byoc_cli.pipeline.register import FEATURE_DEFAULTS
@@ -77,7 +80,9 @@ class Registrar:
         self.defaults: Mapping[str, Any] = FEATURE_DEFAULTS[features]
         self.device = _resolve_device(device)
         self.weights_info: dict[str, Any] | None = None
-        self.extractor = self._make_extractor(weights, voxel_size)
+        self.auto_voxel = voxel_size == "auto"
+        self.extractor = self._make_extractor(weights, None if self.auto_voxel else voxel_size)
+        #: the voxel of every cloud when not auto; the reference of the auto choice when auto
         self.voxel_size = float(self.extractor.voxel_size)
         # clouds prepared for multiscale refinement, most recent last: a cloud refined in
         # several pairs (register-batch) builds its levels, normals and search index once
@@ -97,10 +102,11 @@ class Registrar:
 
         key = id(feats.cloud)
         hit = self._refine_clouds.get(key)
-        if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == feats.voxel_size:
+        voxel = feats.refine_voxel or feats.voxel_size
+        if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == voxel:
             self._refine_clouds.move_to_end(key)
             return hit[1]
-        prepared = RefineCloud(feats.cloud, feats.voxel_size)
+        prepared = RefineCloud(feats.cloud, voxel)
         self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: the id stays its
         while len(self._refine_clouds) > self.REFINE_CACHE:
             self._refine_clouds.popitem(last=False)
@@ -139,34 +145,93 @@ class Registrar:
         label: str | None = None,
         intrinsics: str | os.PathLike[str] | None = None,
         depth_scale: float = 1000.0,
+        voxel_size: float | None = None,
     ) -> Features:
         """Features of one cloud (an ``(N, 3)`` array in metres, or a file).
 
         Args:
             cloud: points or a path (read with :func:`load_cloud`).
-            scale: multiply the coordinates by this first (None: check they look like metres).
+            scale: multiply the coordinates by this first (None: check they look like metres,
+                unless the voxel is auto).
             label: how errors name the cloud (default: its path, or ``"cloud"``).
             intrinsics, depth_scale: for depth-image files.
+            voxel_size: this cloud's voxel (a pair's :meth:`choose_voxel`); None: the
+                registrar's, or with ``"auto"`` the choice for this cloud alone.
 
         Raises:
             InputError, ShapeError: unreadable or malformed input.
-            RegistrationError: fewer than 3 voxels, a voxel larger than the cloud, collinear.
+            RegistrationError: fewer than 3 voxels, a voxel larger than the cloud, collinear,
+                (auto) too few points to read a scale from.
         """
-        points, name = _as_points(
+        points, name = self.load(
             cloud, label or "cloud", scale, intrinsics=intrinsics, depth_scale=depth_scale
         )
-        return self._extract(points, scale, label or name)
+        refine_voxel = None
+        if voxel_size is None and self.auto_voxel:
+            choice = self.choose_voxel(points, label=label or name)
+            voxel_size, refine_voxel = choice.voxel_size, choice.refine_voxel
+        return self.extract_points(points, scale, label or name, voxel_size, refine_voxel)
 
-    def _extract(self, points: np.ndarray, scale: float | None, label: str) -> Features:
-        """Features of ``points (N, 3)`` already in metres."""
+    def load(self, cloud: Any, label: str, scale: float | None, **load: Any):
+        """``(points (N, 3) float64, name)`` of an array or a file; the unit check runs only
+        when neither ``scale`` nor an auto voxel says what the units are."""
+        if scale is None and self.auto_voxel:
+            scale = 1.0
+        return _as_points(cloud, label, scale, **load)
+
+    def choose_voxel(self, *clouds: np.ndarray, label: str = "cloud", labels=None):
+        """The auto voxel of one or two clouds ``(N, 3)`` (a pair shares one):
+        a :class:`~byoc_cli.pipeline.scale.VoxelChoice`; ``label`` (one cloud) or ``labels``
+        (each cloud) name them in errors.
+
+        Raises:
+            RegistrationError: a cloud too small or without extent to read a scale from, or
+                two clouds too different in size to be in the same units.
+        """
+        if labels is None:
+            labels = [label] if len(clouds) == 1 else ["source", "target"]
+        scales = [self.measure(c, name) for c, name in zip(clouds, labels, strict=True)]
+        return self.voxel_for(*scales)
+
+    @staticmethod
+    def measure(points: np.ndarray, label: str = "cloud"):
+        """How ``points (N, 3)`` are sampled: :class:`~byoc_cli.pipeline.scale.CloudScale`.
+
+        Raises:
+            RegistrationError: too few distinct points to read a scale from.
+        """
         import torch
 
-        got = self.extractor(torch.from_numpy(points), label=label)
+        from byoc_cli.pipeline.scale import measure
+
+        return measure(torch.from_numpy(points), label)
+
+    def voxel_for(self, *scales: Any):
+        r"""The auto voxel of clouds measured with :meth:`measure` (a pair shares one)."""
+        from byoc_cli.pipeline.scale import choose_voxel
+
+        return choose_voxel(tuple(scales), self.voxel_size)
+
+    def extract_points(
+        self,
+        points: np.ndarray,
+        scale: float | None,
+        label: str,
+        voxel_size: float | None = None,
+        refine_voxel: float | None = None,
+    ) -> Features:
+        """Features of ``points (N, 3)`` already in metres, at ``voxel_size`` (None: the
+        registrar's); ``refine_voxel``: the refinement's voxel (None: ``voxel_size``)."""
+        import torch
+
+        voxel = voxel_size or self.voxel_size
+        got = self.extractor(torch.from_numpy(points), label=label, voxel_size=voxel)
         return Features(
             points=got.points.numpy(),
             feats=got.feats.numpy(),
             point_index=got.point_index.numpy(),
-            voxel_size=self.voxel_size,
+            voxel_size=voxel,
+            refine_voxel=refine_voxel,
             scale=1.0 if scale is None else float(scale),
             features=self.features,
             weights_sha256=self.weights_sha256,
@@ -204,6 +269,7 @@ class Registrar:
         from byoc_cli.pipeline.features import CloudFeatures
         from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
 
+        src, tgt = self._same_voxel(src, tgt)
         if (src.features, src.voxel_size, src.scale) != (tgt.features, tgt.voxel_size, tgt.scale):
             raise ValueError("src and tgt must have the same features, voxel size and scale")
         estimator = estimator or self.defaults["estimator"]
@@ -231,7 +297,9 @@ class Registrar:
         full = None
         if src.cloud is not None and tgt.cloud is not None:
             full = (self._refine_cloud(src), self._refine_cloud(tgt))
-        result = estimate_transform(cloud(src), cloud(tgt), config, src.voxel_size, full)
+        result = estimate_transform(
+            cloud(src), cloud(tgt), config, src.voxel_size, full, refine_voxel=src.refine_voxel
+        )
         T = result.T_tgt_src.clone()
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s
         return Registration(
@@ -253,6 +321,23 @@ class Registrar:
             seed=seed,
             weights_sha256=self.weights_sha256,
             timings=dict(result.timings),
+            cues=dict(result.cues),
+        )
+
+    def _same_voxel(self, src: Features, tgt: Features) -> tuple[Features, Features]:
+        """With an auto voxel, two clouds extracted one at a time may have chosen different
+        voxels: both are extracted again at the voxel of the pair (from their ``cloud``,
+        kept for that). Otherwise ``(src, tgt)`` as they are."""
+        same = (src.voxel_size, src.refine_voxel) == (tgt.voxel_size, tgt.refine_voxel)
+        if same or not self.auto_voxel or src.cloud is None or tgt.cloud is None:
+            return src, tgt
+        if src.features != self.features or tgt.features != self.features:
+            return src, tgt
+        choice = self.choose_voxel(src.cloud, tgt.cloud)
+        voxel = (choice.voxel_size, choice.refine_voxel)
+        return (
+            self.extract_points(src.cloud, src.scale, "source", *voxel),
+            self.extract_points(tgt.cloud, tgt.scale, "target", *voxel),
         )
 
     def register(
@@ -273,22 +358,30 @@ class Registrar:
         """
         start = time.perf_counter()
         load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
-        points_src, name_src = _as_points(source, "source", scale, **load)
-        points_tgt, name_tgt = _as_points(target, "target", scale, **load)
+        points_src, name_src = self.load(source, "source", scale, **load)
+        points_tgt, name_tgt = self.load(target, "target", scale, **load)
         t_load = time.perf_counter()
-        src = self._extract(points_src, scale, name_src)
+        choice = None
+        if self.auto_voxel:
+            choice = self.choose_voxel(points_src, points_tgt, labels=(name_src, name_tgt))
+        voxel = (None, None) if choice is None else (choice.voxel_size, choice.refine_voxel)
+        t_scale = time.perf_counter()
+        src = self.extract_points(points_src, scale, name_src, *voxel)
         t_src = time.perf_counter()
-        tgt = self._extract(points_tgt, scale, name_tgt)
+        tgt = self.extract_points(points_tgt, scale, name_tgt, *voxel)
         t_tgt = time.perf_counter()
         result = self.match(src, tgt, **settings)
         timings = {
             "load": t_load - start,
-            "features_src": t_src - t_load,
+            "scale": t_scale - t_load,
+            "features_src": t_src - t_scale,
             "features_tgt": t_tgt - t_src,
             **result.timings,
             "total": time.perf_counter() - start,
         }
-        return result._replace(timings=timings)
+        return result._replace(
+            timings=timings, voxel_choice=None if choice is None else choice.as_dict()
+        )
 
 
 def _resolve_device(device: str) -> str:
@@ -306,7 +399,7 @@ def extract_features(
     *,
     features: str = "byoc",
     weights: str | os.PathLike[str] | LoadedWeights | None = None,
-    voxel_size: float | None = None,
+    voxel_size: float | str | None = "auto",
     scale: float | None = None,
     device: str = "auto",
     intrinsics: str | os.PathLike[str] | None = None,
@@ -326,7 +419,7 @@ def register(
     *,
     features: str = "byoc",
     weights: str | os.PathLike[str] | LoadedWeights | None = None,
-    voxel_size: float | None = None,
+    voxel_size: float | str | None = "auto",
     estimator: str | None = None,
     refine: str | None = None,
     max_points: int | None = None,

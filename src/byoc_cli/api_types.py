@@ -30,6 +30,8 @@ class Features(NamedTuple):
         weights_sha256: SHA-256 of the weights file (None for fpfh).
         cloud: ``(N, 3)`` float64 input points in metres, which ``"multiscale"``
             refinement runs on; None (features read back from a file): the kept points.
+        refine_voxel: the voxel the refinement levels scale with (None: ``voxel_size``);
+            the auto voxel keeps it below a ``voxel_size`` raised for sparse clouds.
     """
 
     points: np.ndarray
@@ -40,6 +42,7 @@ class Features(NamedTuple):
     features: str
     weights_sha256: str | None
     cloud: np.ndarray | None = None
+    refine_voxel: float | None = None
 
 
 class Registration(NamedTuple):
@@ -48,17 +51,22 @@ class Registration(NamedTuple):
     Attributes:
         T_tgt_src: ``(4, 4)`` float64, maps source points into the target frame
             (``x_tgt = R x_src + t``, column vectors), in the units of the input.
-        confidence: ratio-weighted inlier share in [0, 1] (0 when fewer than 3 inliers).
+        confidence: the calibrated probability in [0, 1] that ``T_tgt_src`` is right (within
+            5 deg and 10 cm at the features' scale; 0 when fewer than 3 inliers).
         num_inliers, num_correspondences, inlier_ratio: the verified correspondences.
         overlap: share of the kept source points that land next to a kept target point.
         num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
-        inlier_threshold: in metres.
-        voxel_size: in metres.
+        inlier_threshold: in the units of the points (of the input, times ``scale``).
+        voxel_size: in the same units.
         features, estimator, refine: what ran (``refine`` is ``"none"`` or ``"icp"``).
         max_points, num_correspondences_per_direction, seed: the matching settings.
         weights_sha256: SHA-256 of the weights file (None for fpfh).
         timings: seconds per stage (``features_src``, ``features_tgt``, ``match``, ``fit``,
             ``verify``, ``total``; a stage that was cached reads 0).
+        voxel_choice: with ``voxel_size="auto"``, how the voxel was chosen
+            (:meth:`byoc_cli.pipeline.scale.VoxelChoice.as_dict`); None otherwise.
+        cues: what the confidence is computed from
+            (:attr:`byoc_cli.pipeline.register.RegistrationResult.cues`).
     """
 
     T_tgt_src: np.ndarray
@@ -79,6 +87,8 @@ class Registration(NamedTuple):
     seed: int
     weights_sha256: str | None
     timings: dict[str, float]
+    voxel_choice: dict | None = None
+    cues: dict[str, float] | None = None
 
 
 def load_weights(path: str | os.PathLike[str] | None = None) -> LoadedWeights:

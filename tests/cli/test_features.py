@@ -94,7 +94,11 @@ def test_npy_pairs_and_fpfh(runner, tmp_path):
     cloud = tmp_path / "c.ply"
     write_ply(cloud, _cube())
     res = runner.invoke(
-        cli, ["features", str(cloud), "-o", str(tmp_path / "c.npz"), "--npy", "--features", "fpfh"]
+        cli,
+        [
+            *("features", str(cloud), "-o", str(tmp_path / "c.npz"), "--npy"),
+            *("--features", "fpfh", "--voxel-size", "0.05"),
+        ],
     )
     assert res.exit_code == 0, res.output
     points = np.load(tmp_path / "c.points.npy")

@@ -215,7 +215,7 @@ BAD_INPUTS = {
             np.save(d / "mm.npy", np.random.default_rng(0).uniform(0, 4000, (500, 3))),
             d / "mm.npy",
         )[1],
-        "--scale 0.001",
+        "same units",
     ),
     "too_few": (lambda d: (np.save(d / "f.npy", np.zeros((2, 3))), d / "f.npy")[1], "voxel"),
     "unknown_ext": (lambda d: _write(d / "x.foo", b"1 2 3\n"), "extension"),

@@ -189,7 +189,7 @@ def register_batch(
             settings = ("estimator", "refine", "max_points", "num_correspondences", "seed")
             run = _PairRunner(
                 registrar,
-                FeatureCache(cache_size),
+                FeatureCache(2 * cache_size),  # clouds and their features
                 match_settings(*(options[name] for name in settings)),
                 {
                     "scale": options["scale"],
@@ -237,10 +237,31 @@ class _PairRunner:
         self.registrar, self.cache, self.settings = registrar, cache, settings
         self.load, self.min_confidence, self.inputs = load, min_confidence, inputs
 
-    def _features(self, path: Path, timings: dict, stage: str):
+    def _cloud(self, path: Path, label: str, timings: dict):
+        """``(points, name, CloudScale | None)`` of a file, read (and measured for an auto
+        voxel) once while it stays in the cache."""
         start = time.perf_counter()
+
+        def read():
+            load = dict(self.load)
+            points, name = self.registrar.load(path, label, load.pop("scale"), **load)
+            auto = self.registrar.auto_voxel
+            return points, name, self.registrar.measure(points, name) if auto else None
+
+        cloud, cached = self.cache.get(("cloud", path.resolve()), read)
+        timings["load"] = timings.get("load", 0.0) + (
+            0.0 if cached else time.perf_counter() - start
+        )
+        return cloud
+
+    def _features(self, cloud, path: Path, voxel: tuple, timings: dict, stage: str):
+        """Features at ``voxel``, ``(voxel_size, refine_voxel)`` (None, None: the
+        registrar's)."""
+        start = time.perf_counter()
+        points, name, _ = cloud
         feats, cached = self.cache.get(
-            path.resolve(), lambda: self.registrar.extract(path, **self.load)
+            ("features", path.resolve(), voxel),
+            lambda: self.registrar.extract_points(points, self.load["scale"], name, *voxel),
         )
         timings[stage] = 0.0 if cached else time.perf_counter() - start
         return feats
@@ -252,10 +273,19 @@ class _PairRunner:
         started = time.perf_counter()
         timings: dict[str, float] = {}
         try:
-            src = self._features(entry.source, timings, "features_src")
-            tgt = self._features(entry.target, timings, "features_tgt")
+            cloud_src = self._cloud(entry.source, "source", timings)
+            cloud_tgt = self._cloud(entry.target, "target", timings)
+            choice, voxel = None, (None, None)
+            if self.registrar.auto_voxel:
+                choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
+                voxel = (choice.voxel_size, choice.refine_voxel)
+            src = self._features(cloud_src, entry.source, voxel, timings, "features_src")
+            tgt = self._features(cloud_tgt, entry.target, voxel, timings, "features_tgt")
             result = self.registrar.match(src, tgt, **self.settings)
-            result = result._replace(timings={**timings, **result.timings})
+            result = result._replace(
+                timings={**timings, **result.timings},
+                voxel_choice=None if choice is None else choice.as_dict(),
+            )
             policy = OutputSet(self.inputs)
             policy.claim(output)
             with policy:  # the T file appears complete, or not at all

@@ -15,12 +15,12 @@ from byoc_cli.cli.options import (
     device_option,
     features_option,
     finite_float,
+    fixed_voxel_size_option,
     float_option,
     int_option,
     path_option,
     resolve_device,
     seed_option,
-    voxel_size_option,
     weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
@@ -152,7 +152,7 @@ def _print_eval(report: dict, name: str) -> None:
     ),
     features_option,
     weights_option,
-    voxel_size_option,
+    fixed_voxel_size_option,
     float_option(
         "--icp-voxel", default=0.025, help="Finest ICP voxel, metres (ICP at 4x, 2x, 1x)."
     ),

@@ -79,7 +79,30 @@ def apply(*options: Callable) -> Callable:
     return decorate
 
 
-voxel_size_option = float_option(
+class VoxelSize(click.ParamType):
+    """``auto`` or a finite number > 0."""
+
+    name = "auto|FLOAT"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        if value is None or value == "auto":
+            return value
+        return POSITIVE.convert(value, param, ctx)
+
+
+voxel_size_option = click.option(
+    "--voxel-size",
+    type=VoxelSize(),
+    default="auto",
+    show_default=True,
+    help="Feature voxel, in the units of the points. auto: read from the clouds: the "
+    "features' own voxel (the weights' 0.025 m for byoc, 0.05 m for fpfh) for scans the size "
+    "of a room or a desk, scaled with the scan's size outside that range (millimetres, small "
+    "objects, LiDAR), and at least 1.8 point spacings of the sparser cloud; the JSON report "
+    "says which and why. A number turns auto off.",
+)
+#: ``--voxel-size`` of the commands that register a whole set with one voxel (no auto yet)
+fixed_voxel_size_option = float_option(
     "--voxel-size",
     default=None,
     help="Voxel size in metres [default: the weights' voxel size (0.025) for byoc, 0.05 for fpfh].",

@@ -18,12 +18,12 @@ from byoc_cli.cli.options import (
     device_option,
     features_option,
     finite_float,
+    fixed_voxel_size_option,
     float_option,
     int_option,
     path_option,
     resolve_device,
     seed_option,
-    voxel_size_option,
     weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
@@ -165,7 +165,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     float_option("--merged-voxel", default=0.01, help="Voxel size of the merged model, metres."),
     features_option,
     weights_option,
-    voxel_size_option,
+    fixed_voxel_size_option,
     float_option(
         "--icp-voxel",
         default=0.02,

@@ -49,7 +49,9 @@ class FeatureExtractor(Protocol):
     name: str
     voxel_size: float
 
-    def __call__(self, points: torch.Tensor) -> CloudFeatures: ...
+    def __call__(
+        self, points: torch.Tensor, label: str = "cloud", voxel_size: float | None = None
+    ) -> CloudFeatures: ...
 
 
 def _voxelize_checked(points: torch.Tensor, voxel_size: float, label: str):
@@ -102,10 +104,13 @@ class ByocExtractor:
         self.voxel_size = float(voxel_size)
         self.device = torch.device(device)
 
-    def __call__(self, points: torch.Tensor, label: str = "cloud") -> CloudFeatures:
+    def __call__(
+        self, points: torch.Tensor, label: str = "cloud", voxel_size: float | None = None
+    ) -> CloudFeatures:
+        """Features of ``points (N, 3)`` at ``voxel_size`` (None: the extractor's own)."""
         from byoc_cli.models.encoder import encode_voxels
 
-        grid = _voxelize_checked(points, self.voxel_size, label)
+        grid = _voxelize_checked(points, voxel_size or self.voxel_size, label)
         with torch.inference_mode():
             feats = encode_voxels(self.encoder, grid.coords.to(self.device)).float().cpu()
         kept = points[grid.point_index].to(torch.float64)
@@ -123,22 +128,26 @@ class FpfhExtractor:
     def __init__(self, voxel_size: float) -> None:
         self.voxel_size = float(voxel_size)
 
-    def __call__(self, points: torch.Tensor, label: str = "cloud") -> CloudFeatures:
+    def __call__(
+        self, points: torch.Tensor, label: str = "cloud", voxel_size: float | None = None
+    ) -> CloudFeatures:
+        """Features of ``points (N, 3)`` at ``voxel_size`` (None: the extractor's own)."""
         from byoc_cli.errors import require_open3d
 
         o3d = require_open3d()
-        grid = _voxelize_checked(points, self.voxel_size, label)
+        voxel = voxel_size or self.voxel_size
+        grid = _voxelize_checked(points, voxel, label)
         kept = points[grid.point_index].to(torch.float64)
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept.numpy()))
         pcd.estimate_normals(
             o3d.geometry.KDTreeSearchParamHybrid(
-                radius=FPFH_NORMAL_RADIUS * self.voxel_size, max_nn=FPFH_NORMAL_MAX_NN
+                radius=FPFH_NORMAL_RADIUS * voxel, max_nn=FPFH_NORMAL_MAX_NN
             )
         )
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(
             pcd,
             o3d.geometry.KDTreeSearchParamHybrid(
-                radius=FPFH_FEATURE_RADIUS * self.voxel_size, max_nn=FPFH_FEATURE_MAX_NN
+                radius=FPFH_FEATURE_RADIUS * voxel, max_nn=FPFH_FEATURE_MAX_NN
             ),
         )
         feats = torch.from_numpy(np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32))

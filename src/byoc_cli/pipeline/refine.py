@@ -68,11 +68,17 @@ class Refinement(NamedTuple):
         T_tgt_src: ``(4, 4)`` float64.
         rank: directions the last step of the finest level moved (6 = none held).
         fitness: share of source points with a target point within the finest distance.
+        rmse: root mean square distance of those points to their nearest target point, in
+            multiples of the feature voxel (nan when no level ran).
+        conditioning: smallest eigenvalue of the last step's normal equations over the
+            largest (0 when no step ran): near 0, the geometry leaves a direction free.
     """
 
     T_tgt_src: torch.Tensor
     rank: int
     fitness: float
+    rmse: float = float("nan")
+    conditioning: float = 0.0
 
 
 def _level_geometry(voxel_size: float) -> list[tuple[float, float, float]]:
@@ -158,7 +164,7 @@ def refine_multiscale(
     """
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
     T = T_init.detach().to(device="cpu", dtype=torch.float64).clone()
-    rank, fitness = 0, 0.0
+    rank, fitness, rmse, conditioning = 0, 0.0, float("nan"), 0.0
     for level, (size, dist, _) in enumerate(src.levels):
         p = src.source(level)  # levels, normals and searches: all threads
         q, n, index = tgt.target(level)
@@ -175,6 +181,7 @@ def refine_multiscale(
             fitness = float(ok.double().mean())
             if int(ok.sum()) < MIN_CORRESPONDENCES:
                 break
+            rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
             j = near.index[ok]
             # tiny tensors: extra threads only wait on each other (10x slower)
             with _threads(1):
@@ -182,12 +189,12 @@ def refine_multiscale(
                     moved[ok], q[j], n[j], degeneracy=degeneracy, sliding=sliding
                 )
             T = step.T @ T
-            rank = step.rank
+            rank, conditioning = step.rank, float(step.eigenvalues[0])
             dR = step.T[:3, :3]
             angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(dR)) - 1) / 2)))
             if angle < TOLERANCE and float(step.T[:3, 3].norm()) < TOLERANCE * voxel_size:
                 break
-    return Refinement(T, rank, fitness)
+    return Refinement(T, rank, fitness, rmse, conditioning)
 
 
 def _prepared(points, voxel_size: float) -> RefineCloud:

@@ -6,6 +6,7 @@ points into the target frame, ``x_tgt = R x_src + t``.
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ from byoc_cli.fitting import randomized_procrustes, ransac
 from byoc_cli.geometry import apply_transform
 from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
+from byoc_cli.pipeline.confidence import probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.refine import refine_multiscale
 
@@ -104,12 +106,20 @@ class RegistrationResult(NamedTuple):
         num_correspondences: correspondences the estimator saw.
         num_inliers: correspondences within the inlier threshold under ``T_tgt_src``.
         inlier_ratio: ``num_inliers / num_correspondences``.
-        confidence: ratio-weighted inlier share in [0, 1]: sum of the weights of inlier
-            correspondences over the sum of all weights (0 when fewer than 3 inliers).
+        confidence: the calibrated probability in [0, 1] that ``T_tgt_src`` is right
+            (:func:`byoc_cli.pipeline.confidence.probability_right` of ``cues``; 0 when fewer
+            than 3 inliers).
         overlap: share of the kept source points that land next to a kept target point.
         num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
         inlier_threshold: in the units of the points.
         timings: seconds per stage.
+        cues: what the run knows about its own result, unit-free, for
+            :func:`byoc_cli.pipeline.confidence.probability_right`: ``inlier_share``
+            (ratio-weighted), ``inlier_ratio``, ``inliers`` (count), ``overlap``,
+            ``coarse_inlier_ratio`` (of the robust fit before refinement), ``fitness``,
+            ``rmse`` (voxels), ``rank`` and ``conditioning`` of the refinement (1.0, 0.0, 6 and
+            1.0 without one),
+            ``shift_deg`` and ``shift_voxels``: how far refinement moved the robust fit.
     """
 
     T_tgt_src: torch.Tensor
@@ -122,6 +132,7 @@ class RegistrationResult(NamedTuple):
     num_points_tgt: int
     inlier_threshold: float
     timings: dict[str, float]
+    cues: dict[str, float] = {}  # noqa: RUF012 (a NamedTuple default, never mutated)
 
 
 @dataclass
@@ -153,11 +164,13 @@ def estimate_transform(
     config: RegisterConfig,
     voxel_size: float,
     clouds: tuple[torch.Tensor, torch.Tensor] | None = None,
+    refine_voxel: float | None = None,
 ) -> RegistrationResult:
     """Match two featured clouds and fit ``T_tgt_src`` (no I/O, no feature extraction).
 
     ``clouds``: the full-resolution ``(N, 3)``, ``(M, 3)`` points that ``"multiscale"``
-    refinement runs on (None: the kept points).
+    refinement runs on (None: the kept points); ``refine_voxel``: the voxel its levels scale
+    with (None: ``voxel_size``).
     """
     timer = _Timer()
     start = time.perf_counter()
@@ -186,21 +199,42 @@ def estimate_transform(
         reason = str(caught[0].message).split(";")[0]  # not the estimator's fallback
         raise RegistrationError(f"no transform could be fitted ({reason})")
     T = fit.T_tgt_src.to(torch.float64)
+    T_coarse = T
     start = timer("fit", start)
 
+    refinement = None
     if config.refine == "icp":
         T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
         start = timer("refine", start)
     elif config.refine == "multiscale":
         full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
-        T = refine_multiscale(full_src, full_tgt, T, voxel_size).T_tgt_src
+        refinement = refine_multiscale(full_src, full_tgt, T, refine_voxel or voxel_size)
+        T = refinement.T_tgt_src
         start = timer("refine", start)
 
     residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
     inlier = residual < threshold
     num_inliers = int(inlier.sum())
-    confidence = float(w[inlier].sum() / w.sum().clamp_min(1e-12)) if num_inliers >= 3 else 0.0
-    overlap = near_occupied(apply_transform(T, src.points), tgt.points, voxel_size)
+    share = float(w[inlier].sum() / w.sum().clamp_min(1e-12)) if num_inliers >= 3 else 0.0
+    overlap = float(
+        near_occupied(apply_transform(T, src.points), tgt.points, voxel_size).float().mean()
+    )
+    coarse = torch.linalg.vector_norm(apply_transform(T_coarse, p) - q, dim=1) < threshold
+    shift = T @ torch.linalg.inv(T_coarse)
+    cues = {
+        "inlier_share": share,
+        "inlier_ratio": num_inliers / p.shape[0],
+        "inliers": float(num_inliers),
+        "overlap": overlap,
+        "coarse_inlier_ratio": float(coarse.double().mean()),
+        "fitness": 1.0 if refinement is None else refinement.fitness,
+        "rmse": 0.0 if refinement is None else refinement.rmse,
+        "rank": 6.0 if refinement is None else float(refinement.rank),
+        "conditioning": 1.0 if refinement is None else refinement.conditioning,
+        "shift_deg": _angle_deg(shift[:3, :3]),
+        "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / voxel_size,
+    }
+    confidence = probability_right(cues) if num_inliers >= 3 else 0.0
     timer("verify", start)
     return RegistrationResult(
         T_tgt_src=T,
@@ -208,12 +242,19 @@ def estimate_transform(
         num_inliers=num_inliers,
         inlier_ratio=num_inliers / p.shape[0],
         confidence=confidence,
-        overlap=float(overlap.float().mean()),
+        overlap=overlap,
         num_points_src=int(src.points.shape[0]),
         num_points_tgt=int(tgt.points.shape[0]),
         inlier_threshold=threshold,
         timings=timer.timings,
+        cues=cues,
     )
+
+
+def _angle_deg(R: torch.Tensor) -> float:
+    """Rotation angle of ``R (3, 3)`` in degrees."""
+    cos = (float(torch.trace(R)) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def _fit(

