@@ -178,3 +178,23 @@ def test_crop_pair_without_overlap_or_points_in_j_still_crops_i():
     empty = CachedFrame(torch.zeros(0, 3))
     ci, cj = crop_pair(CachedFrame(points_i), empty, T, 0.2, gen)
     assert len(ci.points) > 0 and len(cj.points) == 0
+
+
+def test_hole_augmentation_drops_voxels_and_is_off_by_default():
+    """hole_prob 1: each view keeps a share of its voxels in [hole_min_keep, 1], the kept
+    points still correspond; hole_prob 0 draws no random number (old runs resume the same)."""
+    frame = CachedFrame(torch.from_numpy(_cloud(20000, 3)))
+    T = torch.eye(4)
+    base = AugmentConfig(max_rotation_deg=0.0, scale=0.0, min_keep=1.0)
+    full = make_pair_views(frame, frame, T, 0.1, base, torch.Generator().manual_seed(0))
+    holes = base._replace(hole_prob=1.0, hole_min_keep=0.3)
+    thin = make_pair_views(frame, frame, T, 0.1, holes, torch.Generator().manual_seed(0))
+    for a, b in ((full.view_i, thin.view_i), (full.view_j, thin.view_j)):
+        assert 0.25 * len(a.coords) < len(b.coords) < len(a.coords)
+        assert len(b.coords) == len(b.points)
+    assert len(thin.matches) < len(full.matches)
+    off = base._replace(hole_prob=0.0, hole_min_keep=0.3)
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    make_pair_views(frame, frame, T, 0.1, off, g1)
+    make_pair_views(frame, frame, T, 0.1, base, g2)
+    assert torch.equal(g1.get_state(), g2.get_state())

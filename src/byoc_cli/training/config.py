@@ -84,6 +84,9 @@ class TrainConfig:
         aug_min_keep: ``self-posed``: each view keeps a random share >= this of its points.
         pair_gaps: ``self-posed``: frame distances of the self-posed pairs.
         crop_radius: ``self-posed``: both views cut to a ball of this radius (m); 0 = off.
+        aug_hole_prob, aug_hole_min_keep: ``self-posed``: with this probability a view loses
+            a random share of its occupied voxels, keeping at least ``aug_hole_min_keep`` of
+            them (density augmentation; 0 = off).
         round_steps: ``self-posed``: steps per round (0: one round). Each later round poses the
             sequences again, with the encoder as trained so far as the global registration,
             and trains on those pairs.
@@ -135,6 +138,8 @@ class TrainConfig:
     aug_min_keep: float = 0.7
     pair_gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
     crop_radius: float = 0.0
+    aug_hole_prob: float = 0.0
+    aug_hole_min_keep: float = 0.25
     round_steps: int = 0
     round_gaps: tuple[int, ...] = (80, 100, 120)
     pairs_from: str | None = None
@@ -175,6 +180,8 @@ class TrainConfig:
             problems.append(f"round_gaps must be positive frame distances, got {self.round_gaps}")
         if not self.crop_radius >= 0:
             problems.append(f"crop_radius must be >= 0, got {self.crop_radius}")
+        if not 0 <= self.aug_hole_prob <= 1 or not 0 < self.aug_hole_min_keep <= 1:
+            problems.append("aug_hole_prob must be in [0, 1] and aug_hole_min_keep in (0, 1]")
         if not 0 < self.aug_min_keep <= 1 or not 0 <= self.aug_scale < 1:
             problems.append("aug_min_keep must be in (0, 1] and aug_scale in [0, 1)")
         for name in ("lr", "adam_eps", "voxel_size", "temperature"):

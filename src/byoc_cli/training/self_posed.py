@@ -238,7 +238,12 @@ def training_step(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Loss of one batch of ``(frame_i, frame_j, T_i_j)`` and its log values."""
     aug = AugmentConfig(
-        config.aug_rotation_deg, config.aug_scale, config.aug_min_keep, config.crop_radius
+        config.aug_rotation_deg,
+        config.aug_scale,
+        config.aug_min_keep,
+        config.crop_radius,
+        config.aug_hole_prob,
+        config.aug_hole_min_keep,
     )
     views = [make_pair_views(fi, fj, T, config.voxel_size, aug, generator) for fi, fj, T in batch]
     coords = [c for v in views for c in (v.view_i.coords, v.view_j.coords)]

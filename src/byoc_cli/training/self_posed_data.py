@@ -41,12 +41,20 @@ class AugmentConfig(NamedTuple):
         crop_radius: when > 0, both views keep only the points within this distance (metres)
             of one random point of view ``i`` (and of the same place in view ``j``): fewer
             points per step, the overlap kept.
+        hole_prob: each view, with this probability, loses a random share of its occupied
+            voxels (the encoder input of a scan sampled more sparsely than the voxel, as a
+            cloud thinned after voxelisation): features that hold when one cloud is half as
+            dense as the other. 0 = off (and no random number is drawn for it).
+        hole_min_keep: such a view keeps a share of its voxels uniform in
+            ``[hole_min_keep, 1]``.
     """
 
     max_rotation_deg: float = 180.0
     scale: float = 0.05
     min_keep: float = 0.7
     crop_radius: float = 0.0
+    hole_prob: float = 0.0
+    hole_min_keep: float = 0.25
 
 
 class View(NamedTuple):
@@ -119,7 +127,14 @@ def augment_view(
     moved = ((points - centre) @ R.T) * scale
     moved = moved + torch.rand(3, generator=generator) * voxel_size
     grid = voxelize(moved, voxel_size)
-    return View(grid.coords, points[grid.point_index])
+    coords, kept = grid.coords, points[grid.point_index]
+    if config.hole_prob > 0 and float(torch.rand((), generator=generator)) < config.hole_prob:
+        share = config.hole_min_keep + (1.0 - config.hole_min_keep) * float(
+            torch.rand((), generator=generator)
+        )
+        cells = torch.rand(len(coords), generator=generator) < share
+        coords, kept = coords[cells], kept[cells]
+    return View(coords, kept)
 
 
 def match_views(

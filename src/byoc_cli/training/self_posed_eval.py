@@ -105,6 +105,8 @@ def export_encoder(
             "aug_min_keep",
             "pair_gaps",
             "crop_radius",
+            "aug_hole_prob",
+            "aug_hole_min_keep",
             "round_steps",
             "round_gaps",
         )
