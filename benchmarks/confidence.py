@@ -53,6 +53,18 @@ RGBD_SETS = (
     ("tum_fr1_desk", (2, 4)),
 )
 ROT_DEG, TRANS_M = 5.0, 0.10
+#: a wrong result that is not a near miss: beyond 15 deg or 30 cm (or no right answer)
+GROSS_DEG, GROSS_M = 15.0, 0.30
+#: the share of right results the default threshold keeps
+RECALL = 0.95
+
+
+def _gross(record: dict) -> bool:
+    if record["right"]:
+        return False
+    if "rot_deg" not in record:
+        return True
+    return record["rot_deg"] > GROSS_DEG or record["trans_m"] > GROSS_M
 
 
 def rgbd_pairs() -> Iterator[tuple[str, str, object, object, np.ndarray | None, float]]:
@@ -183,7 +195,7 @@ def errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
     return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(D[:3, 3]))
 
 
-def collect(out: Path, features: str, part: tuple[int, int]) -> None:
+def collect(out: Path, features: str, part: tuple[int, int], groups: list[str]) -> None:
     from byoc_cli.api import Registrar
 
     done = set()
@@ -197,6 +209,8 @@ def collect(out: Path, features: str, part: tuple[int, int]) -> None:
             for name, group, load_src, load_tgt, T_gt, scale in source:
                 count += 1
                 if name in done or count % part[1] != part[0] - 1:
+                    continue
+                if groups and group not in groups:
                     continue
                 record = {"name": name, "group": group, "features": features, "scale": scale}
                 start = time.perf_counter()
@@ -230,7 +244,12 @@ def collect(out: Path, features: str, part: tuple[int, int]) -> None:
 def fit(paths: list[Path]) -> None:
     from byoc_cli.pipeline.confidence import FEATURES, cue_matrix, fit_logistic, sigmoid
 
-    records = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line]
+    records = {}  # a later file's record of a pair replaces an earlier one
+    for p in paths:
+        for line in p.read_text().splitlines():
+            if line:
+                records[json.loads(line)["name"]] = json.loads(line)
+    records = list(records.values())
     scored = [r for r in records if "cues" in r]
     refused = [r for r in records if "refused" in r]
     X = cue_matrix([r["cues"] for r in scored])
@@ -250,17 +269,22 @@ def fit(paths: list[Path]) -> None:
     print("coefficients (features, then bias):")
     for name, value in zip([*FEATURES, "bias"], w, strict=True):
         print(f"    {name:22s} {value:+.4f}")
-    print("\nthreshold  precision  recall  (grouped cross-validation; exit 0 = p >= threshold)")
+    gross = np.array([_gross(r) for r in scored])
+    print(
+        "\nthreshold  precision  recall  gross-free  (grouped cross-validation; exit 0 = p >= "
+        "threshold; gross-free: share of exit 0 within 15 deg and 30 cm)"
+    )
     best = None
     for t in np.round(np.arange(0.05, 1.0, 0.05), 2):
         passed = p_cv >= t
         tp = float((passed & (y == 1)).sum())
         precision = tp / max(passed.sum(), 1)
         recall = tp / max(y.sum(), 1)
-        print(f"  {t:.2f}     {100 * precision:6.2f}    {100 * recall:6.2f}")
-        if best is None and precision >= 0.99:
-            best = (t, precision, recall)
-    print("\nfirst threshold with precision >= 99 %:", best)
+        clean = 1.0 - float((passed & gross).sum()) / max(passed.sum(), 1)
+        print(f"  {t:.2f}     {100 * precision:6.2f}    {100 * recall:6.2f}    {100 * clean:6.2f}")
+        if recall >= RECALL:
+            best = (float(t), precision, recall, clean)
+    print(f"\nthe highest threshold that keeps {100 * RECALL:g} % of the right results:", best)
     print("\nreliability (cross-validated p, bins of 0.1): bin  pairs  predicted  right")
     for lo in np.arange(0, 1.0, 0.1):
         inside = (p_cv >= lo) & (p_cv < lo + 0.1 + (1e-9 if lo >= 0.9 else 0))
@@ -282,11 +306,13 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--out", type=Path, required=True)
     c.add_argument("--features", default="byoc")
     c.add_argument("--part", default="1/1", help="I/N: every N-th pair from the I-th")
+    c.add_argument("--groups", nargs="*", default=[], help="only these groups (default: all)")
     f = sub.add_parser("fit")
     f.add_argument("paths", type=Path, nargs="+")
     args = parser.parse_args(argv)
     if args.command == "collect":
-        collect(args.out, args.features, tuple(int(x) for x in args.part.split("/")))
+        part = tuple(int(x) for x in args.part.split("/"))
+        collect(args.out, args.features, part, args.groups)
     else:
         fit(args.paths)
     return 0

@@ -68,3 +68,14 @@ def test_measure_refuses_too_few_points():
     pts = torch.from_numpy(np.random.default_rng(0).uniform(0, 1, (500, 3)))
     got = measure(pts)
     assert got.num_points == 500 and got.spacing > 0 and got.radius > 0
+
+
+def test_points_that_fill_a_volume_are_refused_and_surfaces_are_not():
+    rng = np.random.default_rng(0)
+    noise = measure(torch.from_numpy(rng.uniform(0, 3, (20000, 3))), "noise.ply")
+    xy = rng.uniform(0, 3, (20000, 2))
+    plane = measure(torch.from_numpy(np.column_stack([xy, np.zeros(len(xy))])), "plane.ply")
+    assert noise.dimension > 2.9 and 1.9 < plane.dimension < 2.2
+    with pytest.raises(RegistrationError, match=r"noise\.ply: the points fill a volume"):
+        choose_voxel((plane, noise), REF)
+    choose_voxel((plane, plane), REF)

@@ -26,6 +26,7 @@ features does not cost the final accuracy. An explicit voxel size bypasses all o
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -47,6 +48,8 @@ MISMATCH_RATIO = 1.25
 MIN_POINTS = 32
 #: clouds of one pair whose radii differ more than this are taken for different units
 MAX_RADIUS_RATIO = 30.0
+#: a cloud whose :attr:`CloudScale.dimension` exceeds this fills a volume: not a scan
+MAX_DIMENSION = 2.8
 
 
 class CloudScale(NamedTuple):
@@ -63,6 +66,15 @@ class CloudScale(NamedTuple):
     spacing: float
     radius: float
     label: str = "cloud"
+
+    @property
+    def dimension(self) -> float:
+        """How the point count grows with size, ``log N / log(radius / spacing)``: about 2
+        for a scanned surface (2.1 to 2.5 for depth frames and fragments), 3 for points that
+        fill a volume (noise); nan without extent."""
+        if self.spacing <= 0 or self.radius <= self.spacing or self.num_points < 2:
+            return float("nan")
+        return math.log(self.num_points) / math.log(self.radius / self.spacing)
 
 
 class VoxelChoice(NamedTuple):
@@ -131,6 +143,13 @@ def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoic
             f"the clouds have no extent to register (radius {radius:.3g}, point spacing "
             f"{spacing:.3g}); give --voxel-size if this is intended"
         )
+    for scale in scales:
+        if scale.dimension > MAX_DIMENSION:
+            raise RegistrationError(
+                f"{scale.label}: the points fill a volume (dimension {scale.dimension:.2f}; a "
+                "scanned surface is about 2): noise, not a scan? Give --voxel-size to register "
+                "it as it is"
+            )
     small = min(scales, key=lambda s: s.radius)
     large = max(scales, key=lambda s: s.radius)
     if small.radius > 0 and large.radius / small.radius > MAX_RADIUS_RATIO:
