@@ -21,8 +21,10 @@ from byoc_cli.cli.options import (
     float_option,
     int_option,
     path_option,
+    quiet_option,
     resolve_device,
     seed_option,
+    verbose_option,
     voxel_size_option,
     weights_option,
 )
@@ -198,7 +200,8 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     ),
     seed_option,
     device_option,
-    click.option("--quiet", is_flag=True, help="No progress bars."),
+    verbose_option,
+    quiet_option("No progress bars; only errors on stderr.", expose_value=True),
 )
 @handle_errors
 def register_scans(

@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from byoc_cli.cli.display import progress_bar
+from byoc_cli.cli.display import is_quiet, progress_bar
 from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
     DEVICES,
@@ -22,6 +22,8 @@ from byoc_cli.cli.options import (
     float_option,
     int_option,
     path_option,
+    quiet_option,
+    verbose_option,
 )
 from byoc_cli.cli.output import write_stdout
 from byoc_cli.io.outputs import check_run_folder
@@ -275,7 +277,8 @@ def _blame_file(
 @path_option("--intrinsics", help="Intrinsics file for folders that ship none.")
 @float_option("--depth-scale", help="Depth units per metre [default: the layout's convention].")
 @apply(*(click.option(decls, default=None, help=text) for decls, text in _SWITCHES))
-@click.option("--quiet", is_flag=True, help="Plain log lines instead of a progress bar.")
+@verbose_option
+@quiet_option("Plain log lines instead of a progress bar; no warnings.", expose_value=True)
 @click.pass_context
 @handle_errors
 def train(
@@ -329,7 +332,7 @@ def train(
     if not info.distributed:
         _interrupt_on_sigterm()
     try:
-        display = _Display(quiet or not info.is_main)
+        display = _Display(is_quiet(quiet) or not info.is_main)
         with display:
             hooks = ("on_start", "on_step", "on_log", "on_validation", "on_checkpoint")
             callbacks = TrainCallbacks(**{hook: getattr(display, hook) for hook in hooks})

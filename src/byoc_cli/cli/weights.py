@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from byoc_cli.cli.errors import handle_errors
-from byoc_cli.cli.options import SEED, float_option, path_option
+from byoc_cli.cli.options import SEED, float_option, path_option, verbosity_options
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 
 
@@ -18,6 +18,7 @@ def weights() -> None:
 
 @weights.command("info")
 @click.argument("path", type=click.Path(path_type=Path), required=False)
+@verbosity_options
 @handle_errors
 def info(path: Path | None) -> None:
     """Validate PATH against the weights spec and print its metadata as JSON on stdout.
@@ -47,6 +48,7 @@ def info(path: Path | None) -> None:
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seeds the initialisation.")
 @float_option("--voxel-size", default=0.025, help="Voxel size (m) recorded in the metadata.")
 @path_option("-o", "--output", required=True, help="The weights file to write.")
+@verbosity_options
 @handle_errors
 def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:
     """Write a randomly initialised encoder (variant random-init) to OUTPUT.

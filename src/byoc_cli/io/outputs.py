@@ -6,7 +6,8 @@ checks each output file the user named and refuses (with :class:`InputError` nam
 * an input of the same run (the same file, also through a link), or an existing file inside
   an input folder;
 * anything that is not a regular file: a folder, a device node (``/dev/null``), a FIFO, a
-  socket (``-`` is standard output and is left to the caller);
+  socket (``-`` and ``/dev/stdout`` are standard output and are left to the caller);
+* standard error (``/dev/stderr``): it carries the messages;
 * a folder that does not exist or does not take new files (read-only, ``/proc``), found by
   creating and removing a probe file there;
 * the same file named twice.
@@ -38,9 +39,22 @@ from byoc_cli.io.atomic import STAGER, write_problem
 __all__ = ["OutputSet", "check_run_folder", "is_stdout"]
 
 
+#: paths that name the standard streams of the process (Linux and macOS spellings)
+STDOUT_PATHS = frozenset({"/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"})
+STDERR_PATHS = frozenset({"/dev/stderr", "/dev/fd/2", "/proc/self/fd/2"})
+
+
 def is_stdout(path: str | os.PathLike[str] | None) -> bool:
-    """True for the ``-`` that names standard output."""
-    return path is not None and str(path) == "-"
+    """True for the ``-`` that names standard output, and for ``/dev/stdout`` (and its
+    spellings in :data:`STDOUT_PATHS`), which mean the same stream."""
+    if path is None:
+        return False
+    return str(path) == "-" or os.path.normpath(str(path)) in STDOUT_PATHS
+
+
+def is_stderr(path: str | os.PathLike[str] | None) -> bool:
+    """True for ``/dev/stderr`` and its spellings in :data:`STDERR_PATHS`."""
+    return path is not None and os.path.normpath(str(path)) in STDERR_PATHS
 
 
 def _identity(path: Path) -> tuple[int, int] | None:
@@ -136,6 +150,12 @@ class OutputSet:
         if path is None or is_stdout(path):
             return None
         shown = Path(path)
+        if is_stderr(path):
+            raise InputError(
+                shown,
+                "is standard error, which carries byoc's messages; name a file, or '-' where "
+                "the option takes standard output",
+            )
         target = Path(os.path.realpath(shown))  # a symlink is written through
         try:
             st = os.stat(target)
