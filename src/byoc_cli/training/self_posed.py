@@ -296,7 +296,7 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     _check_run_folder(run_dir, resume, CONFIG_FILE)
     run_dir.mkdir(parents=True, exist_ok=True)
     sequences = discover_training_sequences(config)
-    data_names = [str(s.root) for s in sequences]
+    data_names = [s.name for s in sequences]
     write_run_config(run_dir, config, {"world_size": 1, "data": data_names})
     val_pairs = validation_pairs(config) if config.val_dir else []
 
