@@ -289,8 +289,8 @@ def test_init_weights_start_the_geometric_encoder_from_a_file(shared_data, tmp_p
     assert all(torch.allclose(tuned.encoder.state_dict()[k], ref[k], atol=1e-6) for k in floats)
     assert not all(torch.allclose(fresh[k], ref[k], atol=1e-3) for k in floats)
     recorded = tuned.metadata["training"]["init_weights"]
-    assert recorded == {
-        "file": str(start),
+    assert recorded == {  # the file's name: a weights file names no folder of this machine
+        "file": start.name,
         "sha256": hashlib.sha256(start.read_bytes()).hexdigest(),
     }
     saved = json.loads((tmp_path / "a" / "config.json").read_text())
