@@ -286,3 +286,28 @@ def test_rounds_pose_again_with_the_trained_encoder_and_resume_exactly(sequence_
     _assert_identical(straight.weights_path, resumed.weights_path)
     again = read_metrics(tmp_path / "resumed" / "metrics.jsonl")
     assert [r["round"] for r in again if r["kind"] == "round"] == [1, 2]
+
+
+def test_too_short_a_video_is_one_line_naming_pair_gaps(shared_data, tmp_path):
+    """4 frames: no pair at the smallest gap (5); one line saying what to change (the error
+    once raised a TypeError)."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from byoc_cli.cli.main import cli
+
+    source, seq = shared_data / "rgbd" / "tum_fr1_xyz", tmp_path / "seq"
+    (seq / "depth").mkdir(parents=True)
+    shutil.copy(source / "intrinsics.json", seq)
+    lines = (source / "depth.txt").read_text().splitlines()[:5]  # a comment, 4 frames
+    (seq / "depth.txt").write_text("\n".join(lines) + "\n")
+    for line in lines[1:]:
+        shutil.copy(source / line.split()[1], seq / line.split()[1])
+    result = CliRunner().invoke(
+        cli, ["train", "--rgbd-dir", str(seq), "--steps", "1", "--out", str(tmp_path / "run")]
+    )
+    assert result.exit_code == 1
+    error = result.stderr.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith(f"byoc: error: {seq}: no self-posed pair")
+    assert "pair_gaps in --config, now 5, 10" in error[0]
