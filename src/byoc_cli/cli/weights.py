@@ -13,6 +13,7 @@ from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 
 
 @click.group("weights")
+@verbosity_options
 def weights() -> None:
     """Inspect or create weights files (safetensors + JSON metadata, weights-spec/)."""
 
