@@ -85,5 +85,5 @@ def claim_outputs(
             raise InputError(outputs[name], f"is standard output, which {name} does not take")
     out = OutputSet(inputs, input_dirs)
     for path in outputs.values():
-        out.claim(path)
+        out.claim(None if is_stdout(path) else path)  # stdout: checked above
     return out

@@ -6,8 +6,10 @@ checks each output file the user named and refuses (with :class:`InputError` nam
 * an input of the same run (the same file, also through a link), or an existing file inside
   an input folder;
 * anything that is not a regular file: a folder, a device node (``/dev/null``), a FIFO, a
-  socket (``-`` and ``/dev/stdout`` are standard output and are left to the caller);
-* standard error (``/dev/stderr``): it carries the messages;
+  socket (``-`` is standard output and is left to the caller);
+* the standard streams named as files (``/dev/stdout``, ``/dev/stderr``), with a hint: the
+  caller turns ``/dev/stdout`` into ``-`` where an option takes it
+  (:func:`byoc_cli.cli.output.claim_outputs`);
 * a folder that does not exist or does not take new files (read-only, ``/proc``), found by
   creating and removing a probe file there;
 * the same file named twice.
@@ -147,9 +149,11 @@ class OutputSet:
         Raises:
             InputError: naming ``path``, when the policy refuses it.
         """
-        if path is None or is_stdout(path):
+        if path is None or str(path) == "-":
             return None
         shown = Path(path)
+        if is_stdout(path):
+            raise InputError(shown, "is standard output: name a file, or '-' where it is taken")
         if is_stderr(path):
             raise InputError(
                 shown,
