@@ -32,6 +32,9 @@ LANGUAGES = {"bash": "shell", "sh": "shell", "shell": "shell", "console": "conso
 LANGUAGES["python"] = "python"
 #: one example may take this long (the slow ones included) before it fails
 TIMEOUT_S = 1800
+#: what the workspace does not link from the repository: outputs of earlier runs (an example
+#: writing ``runs/smoke`` must write into the workspace, not into a developer's ``runs/``)
+_NOT_LINKED = {"runs", "build", "dist", "__pycache__"}
 _FENCE = re.compile(r"^(```+|~~~+)\s*([\w+-]*)")
 _MARK = re.compile(r"^<!--\s*(slow|skip)\s*(?::\s*(.*?))?\s*-->$")
 
@@ -109,7 +112,7 @@ class Workspace:
         self.cwd = folder / "repo"
         self.cwd.mkdir(parents=True)
         for entry in ROOT.iterdir():
-            if entry.name not in (".git", ".venv") and not entry.name.startswith("."):
+            if not entry.name.startswith(".") and entry.name not in _NOT_LINKED:
                 (self.cwd / entry.name).symlink_to(entry)
         (folder / "shared").mkdir()
         (folder / "shared" / "data").symlink_to(SHARED_DATA)
