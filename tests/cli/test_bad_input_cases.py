@@ -359,7 +359,7 @@ def test_case9_weights_info_is_strict_json_and_checks_metrics(tmp_path):
     def nan_metric(meta, tensors):
         meta["training"]["metrics"] = {"loss": float("nan")}
 
-    result = _run("weights", "info", _weights_with(tmp_path, "nan.st", nan_metric))
+    result = _run("weights", "info", "--json", _weights_with(tmp_path, "nan.st", nan_metric))
     assert result.exit_code == 0, result.output
     parsed = json.loads(result.stdout, parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
     assert parsed["training"]["metrics"] == {"loss": None}

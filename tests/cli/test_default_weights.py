@@ -47,14 +47,58 @@ def test_headline_command_registers_the_demo_pair_with_no_flags(runner, shared_d
     assert r["weights_sha256"] == default_weights.verify_default_weights()
 
 
-def test_weights_info_without_a_file_describes_the_shipped_weights(runner):
-    res = runner.invoke(cli, ["weights", "info"])
+def test_weights_info_json_describes_the_shipped_weights(runner):
+    res = runner.invoke(cli, ["weights", "info", "--json"])
     assert res.exit_code == 0, res.output
     meta = json.loads(res.stdout)
     assert meta["shipped"] is True and meta["training"]["variant"] == "self-posed"
-    for key in ("data", "steps", "metrics", "recipe"):
+    for key in ("data", "steps", "metrics", "recipe", "validation_data", "held_out"):
         assert meta["training"][key]
     assert meta["file_sha256"] == default_weights.verify_default_weights()
+    assert res.stderr == ""
+
+
+def test_weights_info_prints_a_summary_on_stderr(runner):
+    res = runner.invoke(cli, ["weights", "info"])
+    assert res.exit_code == 0, res.output
+    assert res.stdout == ""
+    meta = json.loads(runner.invoke(cli, ["weights", "info", "--json"]).stdout)
+    lines = {line[:12].strip(): line[12:] for line in res.stderr.splitlines() if line[:1] != " "}
+    assert f"{meta['num_parameters']:,} parameters" in lines["model"]
+    assert lines["training"].startswith(f"self-posed, {meta['training']['steps']} steps")
+    assert lines["data"] == ", ".join(meta["training"]["data"])
+    assert lines["validation"].startswith("tum_fr3_cabinet, spacing 2: fmr 1, inlier_ratio")
+    assert "lr 0.0001" in lines["recipe"] and "crop_radius 0.6" in lines["recipe"]
+    assert "tum_fr3_cabinet, spacing 2: rot_acc_5 64.3, trans_acc_10 53.6" in res.stderr
+    assert lines["sha256"].startswith(default_weights.verify_default_weights() + " (file)")
+    assert runner.invoke(cli, ["weights", "info", "-q"]).stderr == res.stderr  # -q: no logs
+
+
+def _strings(metadata) -> list[str]:
+    """Every string in a JSON value (keys too)."""
+    if isinstance(metadata, dict):
+        return [s for k, v in metadata.items() for s in [k, *_strings(v)]]
+    if isinstance(metadata, list):
+        return [s for v in metadata for s in _strings(v)]
+    return [metadata] if isinstance(metadata, str) else []
+
+
+def test_the_shipped_file_names_datasets_not_folders():
+    """A shipped file names datasets, never a folder of the machine it was trained on."""
+    import re
+    import struct
+
+    blob = default_weights.DEFAULT_WEIGHTS.read_bytes()
+    # strings-style over the whole file, tensors included
+    for marker in (b"/work/", b"/home/", b"/root/", b"/tmp/", b"/Users/", b"/mnt/", b"C:\\"):
+        assert marker not in blob, marker
+    size = struct.unpack("<Q", blob[:8])[0]
+    meta = json.loads(json.loads(blob[8 : 8 + size])["__metadata__"]["byoc"])
+    path_like = re.compile(r"^(/|~|[A-Za-z]:[\\/])|(^|/)\.\.(/|$)")
+    assert meta["training"]["data"] == ["tum_fr1_rpy", "realsense_office", "tum_fr1_xyz"]
+    for text in _strings(meta):
+        assert not path_like.search(text), text
+    assert meta["training"]["init_weights"]["file"] == "sp1-4900.safetensors"
 
 
 def test_shipped_weights_are_small_and_float16():

@@ -329,3 +329,13 @@ def test_eval_pairs_bad_inputs(tmp_path):
     assert result.stderr.strip() == f"byoc: error: {tmp_path / 'none'}: folder does not exist"
     result = _invoke(["eval-pairs", "--pairs-dir", tmp_path, "--method", "identity"])
     assert result.exit_code == 1 and "no prepared pair found" in result.stderr
+
+
+@pytest.mark.parametrize("command", ["eval-fmr", "eval-pairs"])
+def test_method_help_lists_every_method_of_the_registry(command):
+    from byoc_cli.evaluation.methods import METHOD_NAMES
+
+    result = CliRunner().invoke(cli, [command, "--help"], terminal_width=400)
+    text = " ".join(result.output.split())
+    assert f"one table column each: {', '.join(METHOD_NAMES)}." in text
+    assert "byoc-random" in METHOD_NAMES

@@ -3,6 +3,8 @@ error naming the option; seeds are bounded to what a generator takes."""
 
 from __future__ import annotations
 
+import logging
+
 import click
 import pytest
 from click.testing import CliRunner
@@ -70,3 +72,29 @@ def test_finite_float_keeps_the_range():
         kind.convert("1.5", None, None)
     with pytest.raises(click.BadParameter, match="not a finite number"):
         kind.convert(float("nan"), None, None)
+
+
+@pytest.mark.parametrize("name", sorted(_commands()))
+def test_every_command_takes_and_lists_v_and_q(name):
+    help_text = CliRunner().invoke(cli, [*name.split(), "--help"]).output
+    assert "-v, --verbose" in help_text and "-q, --quiet" in help_text, name
+
+
+@pytest.mark.parametrize(
+    ("before", "after", "level"),
+    [
+        ([], [], logging.WARNING),
+        ([], ["-v"], logging.INFO),
+        (["-v"], ["-v"], logging.DEBUG),
+        ([], ["-vv"], logging.DEBUG),
+        ([], ["-q"], logging.ERROR),
+        (["-q"], ["-v"], logging.ERROR),
+        (["-v"], ["--quiet"], logging.ERROR),
+    ],
+)
+def test_v_and_q_after_the_command_set_the_log_level_as_before_it(tmp_path, before, after, level):
+    out = tmp_path / "w.safetensors"
+    args = [*before, "weights", "init", "-o", str(out), *after]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.stderr
+    assert logging.getLogger().getEffectiveLevel() == level

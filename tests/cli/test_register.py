@@ -412,3 +412,49 @@ def test_json_to_stdout_alone_writes_only_the_json(runner, tmp_path):
     assert len(report["T_tgt_src"]) == 4
     both = runner.invoke(cli, ["register", str(src), str(tgt), "-o", "-", "--json", "-"])
     assert both.exit_code == 2 and "cannot both be stdout" in both.stderr
+
+
+def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    args = ["register", str(src), str(tgt), "--weights", str(random_weights)]
+    res = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt")])
+    assert res.exit_code == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"byoc: registered {src} -> {tgt}: ")
+    report = json.loads(runner.invoke(cli, [*args, "--json", "-"]).stdout)
+    figures = (
+        f"confidence {report['confidence']:.3f}, {report['num_inliers']}/"
+        f"{report['num_correspondences']} inliers within "
+        f"{100 * report['inlier_threshold_m']:.1f} cm, voxel 0.025 m, "
+    )
+    assert figures in lines[0] and lines[0].endswith(" s")
+    assert res.stdout == ""
+    # -q before or after the command's name silences it; stdout keeps only the matrix
+    for quiet in (["-q", *args, "-o", "-"], [*args, "-o", "-", "-q"]):
+        res = runner.invoke(cli, quiet)
+        assert res.exit_code == 0 and res.stderr == ""
+        assert len(res.stdout.strip().splitlines()) == 4
+
+
+def test_dev_stdout_is_stdout_and_dev_stderr_is_refused(runner, random_weights, tmp_path):
+    src, tgt, _ = _synthetic_pair(tmp_path)
+    args = ["register", str(src), str(tgt), "--weights", str(random_weights), "-q"]
+    res = runner.invoke(cli, [*args, "-o", "/dev/stdout"])
+    assert res.exit_code == 0, res.stderr
+    assert res.stdout == runner.invoke(cli, [*args, "-o", "-"]).stdout
+    assert len(res.stdout.strip().splitlines()) == 4
+    res = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt"), "--json", "/dev/stdout"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["T_tgt_src"]
+    both = runner.invoke(cli, [*args, "-o", "/dev/stdout", "--json", "-"])
+    assert both.exit_code == 2 and "cannot both be stdout" in both.stderr
+    # an option that takes no '-' refuses /dev/stdout; /dev/stderr carries the messages
+    for option, path, phrase in (
+        ("--aligned", "/dev/stdout", "is standard output, which --aligned does not take"),
+        ("--json", "/dev/stderr", "is standard error"),
+        ("-o", "/dev/fd/2", "is standard error"),
+    ):
+        res = runner.invoke(cli, [*args, "-o", str(tmp_path / "U.txt"), option, path])
+        lines = res.stderr.strip().splitlines()
+        assert res.exit_code == 1 and len(lines) == 1, res.stderr
+        assert lines[0].startswith(f"byoc: error: {path}: ") and phrase in lines[0]
+    assert not (tmp_path / "U.txt").exists()

@@ -289,8 +289,8 @@ def test_init_weights_start_the_geometric_encoder_from_a_file(shared_data, tmp_p
     assert all(torch.allclose(tuned.encoder.state_dict()[k], ref[k], atol=1e-6) for k in floats)
     assert not all(torch.allclose(fresh[k], ref[k], atol=1e-3) for k in floats)
     recorded = tuned.metadata["training"]["init_weights"]
-    assert recorded == {
-        "file": str(start),
+    assert recorded == {  # the file's name: a weights file names no folder of this machine
+        "file": start.name,
         "sha256": hashlib.sha256(start.read_bytes()).hexdigest(),
     }
     saved = json.loads((tmp_path / "a" / "config.json").read_text())
@@ -312,3 +312,53 @@ def test_bad_init_weights_are_exit_1_naming_the_file(shared_data, tmp_path, case
     lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error")]
     assert len(lines) == 1 and str(path) in lines[0] and phrase in lines[0], result.stderr
     assert not (tmp_path / "run" / "weights.safetensors").exists()
+
+
+def test_defaults_fine_tune_the_shipped_weights_and_bar_and_summary_agree(
+    shared_data, tmp_path, monkeypatch
+):
+    """``byoc train --rgbd-dir SEQ --steps 3 --out run``, no other flag: the shipped recipe
+    (self-posed, a fine-tune of the shipped weights), which learns on a CPU; the progress
+    bar ends on the loss the summary reports."""
+    import re
+
+    monkeypatch.chdir(tmp_path)
+    data = shared_data / "rgbd" / "tum_fr1_xyz"
+    result = _run(["--rgbd-dir", str(data), "--steps", "3", "--out", "run"])
+    assert result.exit_code == 0, result.stderr
+    config = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
+    assert config["variant"] == "self-posed" and config["init_weights"] == "shipped"
+    assert (config["batch_size"], config["lr"], config["crop_radius"]) == (2, 1e-4, 0.6)
+    bar = re.findall(r"3/3 loss (\d+\.\d{4})", result.stderr)
+    summary = re.findall(r"trained 3 steps in run: loss (\S+) -> (\S+) ", result.stderr)
+    assert bar and summary and bar[-1] == summary[0][1], result.stderr
+    records = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    last = [json.loads(r) for r in records if '"train"' in r][-1]
+    assert f"{last['loss']:.4f}" == bar[-1]
+
+
+def test_a_random_start_and_the_paper_variants_keep_their_defaults():
+    from byoc_cli.training.config import resolve_config
+
+    assert resolve_config({}, {"init_weights": "none"}).init_weights is None
+    paper = resolve_config({}, {"variant": "byoc-geo"})
+    assert (paper.steps, paper.batch_size, paper.crop_radius, paper.init_weights) == (
+        200_000,
+        8,
+        0.0,
+        None,
+    )
+    # the shipped weights cannot start another architecture: a random start then
+    assert resolve_config({}, {"arch": "minkunet34c"}).init_weights is None
+    assert resolve_config({"batch_size": 4}, {}).batch_size == 4  # the file over the recipe
+
+
+def test_too_few_pairs_names_the_option_to_change(shared_data, tmp_path):
+    data = shared_data / "rgbd" / "tum_fr1_xyz"  # 10 frames
+    args = ["--rgbd-dir", str(data), "--variant", "byoc-geo", "--steps", "1", "--device", "cpu"]
+    result = _run([*args, "--out", str(tmp_path / "run")])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "set --view-spacing 2 or less (8 pairs)" in lines[0]
+    result = _run([*args, "--batch-size", "10", "--out", str(tmp_path / "run")])
+    assert "set --batch-size 9 or less (at --view-spacing 1)" in result.stderr

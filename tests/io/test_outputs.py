@@ -120,3 +120,19 @@ def test_run_folder_policy(tmp_path):
     check_run_folder(mine, lambda p: True)
     with pytest.raises(InputError, match="not a folder"):
         check_run_folder(mine / "weights.safetensors", lambda p: False)
+
+
+@pytest.mark.parametrize(
+    ("path", "phrase"),
+    [
+        ("/dev/stdout", "is standard output"),
+        ("/dev/fd/1", "is standard output"),
+        ("/dev/stderr", "is standard error"),
+        ("/proc/self/fd/2", "is standard error"),
+    ],
+)
+def test_the_standard_streams_named_as_files_are_refused_with_a_hint(path, phrase):
+    assert is_stdout(path) == ("output" in phrase)  # /dev/stdout means stdout to the caller
+    with pytest.raises(InputError, match=f"^{path}: {phrase}"):
+        OutputSet().claim(path)
+    assert OutputSet().claim("-") is None  # '-' is left to the caller

@@ -123,7 +123,9 @@ def test_fine_tuning_starts_from_the_shipped_weights_and_resume_does_not_reload_
     for name, value in got.encoder.state_dict().items():
         if value.is_floating_point() and "running" not in name:
             assert torch.allclose(value, ref[name], atol=1e-5), name
-    assert got.metadata["training"]["init_weights"]["sha256"] == shipped.file_sha256
+    init = got.metadata["training"]["init_weights"]
+    assert init["sha256"] == shipped.file_sha256 and init["file"] == "default.safetensors"
+    assert init["description"].startswith("the weights shipped with byoc-cli ")
     # resumed runs continue from their checkpoint, not from the initial weights again
     straight = train(_config(data, tmp_path / "straight", init_weights="shipped"))
     train(_config(data, tmp_path / "resumed", steps=2, init_weights="shipped"))
@@ -178,6 +180,17 @@ def test_cli_self_posed_run_with_validation(shared_data, tmp_path, quiet):
     assert loaded.metadata["training"]["variant"] == "self-posed"
     assert loaded.metadata["training"]["recipe"]["num_positives"] == 64
     assert "val_fmr" in loaded.metadata["training"]["metrics"]
+    # datasets by name, never the folders of this machine
+    assert loaded.metadata["training"]["data"] == ["tum_fr1_xyz"]
+    assert loaded.metadata["training"]["validation_data"] == ["tum_fr1_desk"]
+    assert loaded.metadata["training"]["val_spacing"] == 4
+    # a checkpoint exported later names them the same way
+    from byoc_cli.training.self_posed_eval import export_checkpoint
+
+    checkpoint = sorted((tmp_path / "run" / "checkpoints").glob("step-*.pt"))[-1]
+    export_checkpoint(checkpoint, tmp_path / "later.safetensors")
+    later = load_weights(tmp_path / "later.safetensors").metadata["training"]
+    assert later["data"] == ["tum_fr1_xyz"] and later["validation_data"] == ["tum_fr1_desk"]
 
 
 def test_pairs_from_reuses_an_earlier_runs_pairs(sequence_copies, tmp_path, monkeypatch):
@@ -273,3 +286,28 @@ def test_rounds_pose_again_with_the_trained_encoder_and_resume_exactly(sequence_
     _assert_identical(straight.weights_path, resumed.weights_path)
     again = read_metrics(tmp_path / "resumed" / "metrics.jsonl")
     assert [r["round"] for r in again if r["kind"] == "round"] == [1, 2]
+
+
+def test_too_short_a_video_is_one_line_naming_pair_gaps(shared_data, tmp_path):
+    """4 frames: no pair at the smallest gap (5); one line saying what to change (the error
+    once raised a TypeError)."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from byoc_cli.cli.main import cli
+
+    source, seq = shared_data / "rgbd" / "tum_fr1_xyz", tmp_path / "seq"
+    (seq / "depth").mkdir(parents=True)
+    shutil.copy(source / "intrinsics.json", seq)
+    lines = (source / "depth.txt").read_text().splitlines()[:5]  # a comment, 4 frames
+    (seq / "depth.txt").write_text("\n".join(lines) + "\n")
+    for line in lines[1:]:
+        shutil.copy(source / line.split()[1], seq / line.split()[1])
+    result = CliRunner().invoke(
+        cli, ["train", "--rgbd-dir", str(seq), "--steps", "1", "--out", str(tmp_path / "run")]
+    )
+    assert result.exit_code == 1
+    error = result.stderr.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith(f"byoc: error: {seq}: no self-posed pair")
+    assert "pair_gaps in --config, now 5, 10" in error[0]

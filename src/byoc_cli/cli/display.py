@@ -5,8 +5,6 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-import click
-
 
 def progress_bar(*fields: str) -> Any:
     """A started rich ``Progress`` on stderr: description, bar, done/total, then a text
@@ -39,10 +37,10 @@ def progress_bar(*fields: str) -> Any:
 
 
 def is_quiet(quiet: bool) -> bool:
-    """``quiet`` or the root group's ``-q``."""
-    ctx = click.get_current_context(silent=True)
-    root = ctx.find_root() if ctx is not None else None
-    return quiet or bool(root is not None and root.params.get("quiet"))
+    """``quiet`` or ``-q`` (given before or after the subcommand)."""
+    from byoc_cli.cli.options import quiet_requested
+
+    return quiet or quiet_requested()
 
 
 def print_table(title: str, columns: list[str], rows: list[list[str]], notes: list[str]) -> None:

@@ -17,8 +17,10 @@ from byoc_cli.cli.options import (
     float_option,
     int_option,
     path_option,
+    quiet_option,
     resolve_device,
     seed_option,
+    verbose_option,
 )
 from byoc_cli.cli.output import claim_outputs, write_json
 
@@ -69,6 +71,22 @@ def expand_method_args(args: Sequence[str]) -> list[str]:
     return out
 
 
+_METHOD_HELP = (
+    "Methods compared side by side, one table column each: {methods}. Several values: "
+    "'--method byoc fpfh-ransac', commas or repeated --method "
+    f"[default: {' '.join(DEFAULT_METHODS)}]."
+)
+
+
+class MethodOption(click.Option):
+    """``--method``: its help lists the names of the method registry
+    (``evaluation.methods.METHOD_NAMES``), read when the help is shown, so it cannot drift."""
+
+    def get_help_record(self, ctx: click.Context) -> tuple[str, str] | None:
+        self.help = _METHOD_HELP.format(methods=", ".join(_known_methods()))
+        return super().get_help_record(ctx)
+
+
 class EvalCommand(click.Command):
     """A command whose ``--method`` takes several space-separated values."""
 
@@ -80,12 +98,9 @@ eval_options = apply(
     click.option(
         "--method",
         "method",
+        cls=MethodOption,
         multiple=True,
         metavar="NAME...",
-        help="Methods compared side by side, one table column each: byoc, fpfh-ransac, "
-        "fpfh-procrustes, icp-point, icp-plane, identity. Several values: "
-        "'--method byoc fpfh-ransac', commas or repeated --method "
-        f"[default: {' '.join(DEFAULT_METHODS)}].",
     ),
     path_option(
         "--weights",
@@ -120,9 +135,10 @@ eval_options = apply(
         default=0.10,
         help="ICP's largest correspondence distance (m); ICP starts from the identity.",
     ),
-    click.option("--quiet", is_flag=True, help="No progress bar and no table on stderr."),
     seed_option,
     device_option,
+    verbose_option,
+    quiet_option("No progress bar and no table; only errors on stderr.", expose_value=True),
 )
 
 

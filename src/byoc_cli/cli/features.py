@@ -22,6 +22,7 @@ from byoc_cli.cli.options import (
     float_option,
     path_option,
     resolve_device,
+    verbosity_options,
     voxel_size_option,
     weights_option,
 )
@@ -79,6 +80,7 @@ def _npz_bytes(feats) -> bytes:
 @path_option("--intrinsics", help="For a depth-image input: intrinsics JSON or 3x3 text.")
 @float_option("--depth-scale", default=1000.0, help="Depth-image units per metre.")
 @device_option
+@verbosity_options
 @handle_errors
 def features(
     cloud: Path,

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from byoc_cli.cli.errors import CliError, handle_errors
-from byoc_cli.cli.options import POSITIVE, finite_float
+from byoc_cli.cli.options import POSITIVE, finite_float, verbosity_options
 
 _PATH = click.Path(path_type=Path)
 
@@ -110,6 +110,7 @@ def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float |
     default=None,
     help="Depth units per metre [default: the layout's convention].",
 )
+@verbosity_options
 @handle_errors
 def make_fragments(
     rgbd_dir: Path,

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import importlib
-import logging
 
 import click
 
 from byoc_cli import __version__
+from byoc_cli.cli.options import verbosity_options
 
 # subcommand name -> (module, attribute); imported only when the command runs or --help asks
 _COMMANDS = {
@@ -44,20 +44,15 @@ class LazyGroup(click.Group):
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="byoc")
-@click.option("-v", "--verbose", count=True, help="More log output on stderr (-vv for debug).")
-@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr.")
-def cli(verbose: int, quiet: bool) -> None:
+@verbosity_options
+def cli() -> None:
     """Register point clouds with features learned from raw RGB-D video (BYOC).
 
     Results (matrices, JSON) go to stdout or the files named; progress, tables and
     logs go to stderr. Exit codes: 0 success, 1 bad input or runtime error, 2 usage
-    error, 3 registered below the confidence gate.
+    error, 3 registered below the confidence gate. -v and -q work before or after the
+    command's name.
     """
-    level = (
-        logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
-    )
-    logging.basicConfig(level=level, format="byoc: %(levelname)s: %(message)s", force=True)
-    logging.captureWarnings(True)
 
 
 def main() -> None:

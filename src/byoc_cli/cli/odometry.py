@@ -19,8 +19,10 @@ from byoc_cli.cli.options import (
     float_option,
     int_option,
     path_option,
+    quiet_option,
     resolve_device,
     seed_option,
+    verbose_option,
     weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
@@ -184,7 +186,8 @@ def _print_eval(report: dict, name: str) -> None:
     float_option("--depth-scale", help="Depth units per metre [default: the layout's]."),
     seed_option,
     device_option,
-    click.option("--quiet", is_flag=True, help="No progress bar."),
+    verbose_option,
+    quiet_option("No progress bar; only errors on stderr.", expose_value=True),
 )
 @handle_errors
 def odometry(

@@ -3,11 +3,13 @@
 Numbers: :class:`FiniteFloat` refuses ``nan`` and ``inf`` (click's ``FloatRange`` lets them
 through), :data:`SEED` is bounded to what a generator takes (0 to 2**64 - 1); both are usage
 errors (exit 2) naming the option. :func:`float_option`, :func:`int_option` and
-:func:`path_option` declare an option in one line.
+:func:`path_option` declare an option in one line. :data:`verbosity_options` gives a command
+the root group's ``-v``/``-q``, so that they work after the subcommand too.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -149,3 +151,61 @@ def packaged_weights() -> Path | None:
     from byoc_cli.pipeline.default_weights import default_weights_path
 
     return default_weights_path()
+
+
+#: key of the root context's ``meta`` that holds ``-v``/``-q``, wherever they were given
+_VERBOSITY = "byoc.verbosity"
+QUIET_HELP = "Only errors on stderr."
+
+
+def set_verbosity(ctx: click.Context, verbose: int = 0, quiet: bool = False) -> None:
+    """Record ``-v`` (counted) and ``-q`` given to the root group or to a subcommand, and set
+    the log level of stderr from all of them: ``-q`` errors only, else warnings, ``-v`` info,
+    ``-vv`` debug."""
+    state = ctx.find_root().meta.setdefault(_VERBOSITY, {"verbose": 0, "quiet": False})
+    state["verbose"] += verbose
+    state["quiet"] = state["quiet"] or quiet
+    levels = (logging.WARNING, logging.INFO, logging.DEBUG)
+    level = logging.ERROR if state["quiet"] else levels[min(state["verbose"], 2)]
+    logging.basicConfig(level=level, format="byoc: %(levelname)s: %(message)s", force=True)
+    logging.captureWarnings(True)
+
+
+def quiet_requested() -> bool:
+    """True when ``-q`` was given, before or after the subcommand."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return False
+    return bool(ctx.find_root().meta.get(_VERBOSITY, {}).get("quiet"))
+
+
+def _on_verbose(ctx: click.Context, param: click.Parameter, value: int) -> int:
+    set_verbosity(ctx, verbose=value)
+    return value
+
+
+def _on_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> bool:
+    set_verbosity(ctx, quiet=value)
+    return value
+
+
+verbose_option = click.option(
+    "-v",
+    "--verbose",
+    count=True,
+    expose_value=False,
+    callback=_on_verbose,
+    help="More log output on stderr (-vv for debug).",
+)
+
+
+def quiet_option(help: str = QUIET_HELP, expose_value: bool = False) -> Callable:
+    """``-q/--quiet``: errors only on stderr (the log level), plus what ``help`` says the
+    command leaves out; ``expose_value`` passes it to the command as ``quiet``."""
+    return click.option(
+        "-q", "--quiet", is_flag=True, expose_value=expose_value, callback=_on_quiet, help=help
+    )
+
+
+#: ``-v``/``-q`` for a command that has no quiet mode of its own.
+verbosity_options = apply(verbose_option, quiet_option())

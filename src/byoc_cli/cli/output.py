@@ -16,6 +16,7 @@ from typing import Any
 import click
 
 from byoc_cli.cli.errors import StdoutError
+from byoc_cli.errors import InputError
 from byoc_cli.io.outputs import OutputSet, is_stdout
 
 __all__ = ["claim_outputs", "is_stdout", "write_json", "write_stdout"]
@@ -52,6 +53,15 @@ def write_json(path: Path | None, value: Any, indent: int = 2, sort_keys: bool =
         atomic_write_text(path, text)
 
 
+def _takes_stdout(option: str) -> bool:
+    """True when the running command's ``option`` accepts ``-`` (standard output)."""
+    ctx = click.get_current_context(silent=True)
+    for param in ctx.command.params if ctx is not None else ():
+        if option in getattr(param, "opts", ()):
+            return bool(getattr(param.type, "allow_dash", False))
+    return False
+
+
 def claim_outputs(
     outputs: dict[str, Path | None],
     inputs: Iterable[Path | None] = (),
@@ -59,16 +69,21 @@ def claim_outputs(
 ) -> OutputSet:
     """An :class:`OutputSet` with every output of ``outputs`` (option -> path) claimed.
 
-    At most one of them may be ``-`` (stdout).
+    At most one of them may be ``-`` (stdout); ``/dev/stdout`` means the same stream for an
+    option that takes ``-``.
 
     Raises:
         click.UsageError: two outputs are ``-``.
-        InputError: the output policy refuses one of them.
+        InputError: the output policy refuses one of them (``/dev/stdout`` for an option
+            that does not take ``-``, ``/dev/stderr`` for any).
     """
     to_stdout = [name for name, path in outputs.items() if is_stdout(path)]
     if len(to_stdout) > 1:
         raise click.UsageError(f"{' and '.join(to_stdout)} cannot both be stdout")
+    for name in to_stdout:
+        if str(outputs[name]) != "-" and not _takes_stdout(name):
+            raise InputError(outputs[name], f"is standard output, which {name} does not take")
     out = OutputSet(inputs, input_dirs)
     for path in outputs.values():
-        out.claim(path)
+        out.claim(None if is_stdout(path) else path)  # stdout: checked above
     return out

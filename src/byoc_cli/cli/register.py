@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
     apply,
@@ -20,6 +21,7 @@ from byoc_cli.cli.options import (
     path_option,
     resolve_device,
     seed_option,
+    verbosity_options,
     voxel_size_option,
     weights_option,
 )
@@ -84,6 +86,7 @@ register_options = apply(
     ),
     seed_option,
     device_option,
+    verbosity_options,
 )
 
 
@@ -223,15 +226,8 @@ def register(
             write_stdout(format_transform(T))
         elif output is not None:
             atomic_write_text(output, format_transform(T))
-    log.info(
-        "registered %s -> %s: confidence %.3f, %d/%d inliers, %.2f s",
-        source,
-        target,
-        result.confidence,
-        result.num_inliers,
-        result.num_correspondences,
-        report["timings_s"]["command"],
-    )
+    if not is_quiet(False):
+        click.echo(summary_line(source, target, result, report["timings_s"]["command"]), err=True)
     if not passed:
         click.echo(
             f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
@@ -239,6 +235,16 @@ def register(
             err=True,
         )
         raise SystemExit(EXIT_LOW_CONFIDENCE)
+
+
+def summary_line(source: Path, target: Path, result, seconds: float) -> str:
+    """The line a successful ``byoc register`` prints on stderr: confidence, inliers, the
+    voxel used and the time (``-q`` silences it)."""
+    return (
+        f"byoc: registered {source} -> {target}: confidence {result.confidence:.3f}, "
+        f"{result.num_inliers}/{result.num_correspondences} inliers within "
+        f"{100 * result.inlier_threshold:.1f} cm, voxel {result.voxel_size:g} m, {seconds:.1f} s"
+    )
 
 
 def _stdout_output(output: Path, json_path: Path | None) -> Path | None:

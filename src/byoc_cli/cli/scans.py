@@ -22,8 +22,10 @@ from byoc_cli.cli.options import (
     float_option,
     int_option,
     path_option,
+    quiet_option,
     resolve_device,
     seed_option,
+    verbose_option,
     weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
@@ -198,7 +200,8 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     ),
     seed_option,
     device_option,
-    click.option("--quiet", is_flag=True, help="No progress bars."),
+    verbose_option,
+    quiet_option("No progress bars; only errors on stderr.", expose_value=True),
 )
 @handle_errors
 def register_scans(

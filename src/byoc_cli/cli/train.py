@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from byoc_cli.cli.display import progress_bar
+from byoc_cli.cli.display import is_quiet, progress_bar
 from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
     DEVICES,
@@ -22,6 +22,8 @@ from byoc_cli.cli.options import (
     float_option,
     int_option,
     path_option,
+    quiet_option,
+    verbose_option,
 )
 from byoc_cli.cli.output import write_stdout
 from byoc_cli.io.outputs import check_run_folder
@@ -68,13 +70,28 @@ def _validation_summary(start: dict[str, float], end: dict[str, float]) -> str:
     )
 
 
+def _loss_text(losses: dict[str, float]) -> str:
+    """``loss X vis Y geo Z v2g W`` (the terms a variant has)."""
+    parts = [f"loss {losses['loss']:.4f}"]
+    for key in ("vis", "geo", "v2g"):
+        value = losses.get(f"loss_{key}")  # the self-posed variant has one loss
+        if value:
+            parts.append(f"{key} {value:.4f}")
+    return " ".join(parts)
+
+
 class _Display:
-    """Progress on stderr: a rich bar (default) or plain log lines (``--quiet``)."""
+    """Progress on stderr: a rich bar (default) or plain log lines (``--quiet``).
+
+    The bar shows the losses averaged since the last metrics line, then that line's own
+    figures: the figures of ``metrics.jsonl`` and of the closing summary.
+    """
 
     def __init__(self, quiet: bool) -> None:
         self.quiet = quiet
         self.progress = None
         self.task = None
+        self.window: list[dict[str, float]] = []
 
     def __enter__(self) -> _Display:
         if not self.quiet:
@@ -103,16 +120,16 @@ class _Display:
     def on_step(self, info) -> None:
         if self.progress is None or self.task is None:
             return
-        parts = [f"loss {info.losses['loss']:.4f}"]
-        for key in ("vis", "geo", "v2g"):
-            value = info.losses.get(f"loss_{key}")  # the self-posed variant has one loss
-            if value:
-                parts.append(f"{key} {value:.4f}")
+        self.window.append(info.losses)
+        mean = {k: sum(w.get(k, 0.0) for w in self.window) / len(self.window) for k in info.losses}
         self.progress.update(
-            self.task, completed=info.step, losses=" ".join(parts), rate=f"{info.steps_per_s:.2f}"
+            self.task, completed=info.step, losses=_loss_text(mean), rate=f"{info.steps_per_s:.2f}"
         )
 
     def on_log(self, record: dict) -> None:
+        self.window = []
+        if self.progress is not None and self.task is not None:
+            self.progress.update(self.task, losses=_loss_text(record))
         if self.quiet:
             terms = " ".join(
                 f"{k.removeprefix('loss_')} {_fmt(record.get(k))}"
@@ -185,9 +202,13 @@ def _interrupt_on_sigterm() -> None:
 
 #: (option, minimum, help) of the integer settings; None defaults mean "from the config".
 _COUNTS = (
-    ("--steps", 1, "Optimiser steps [default: 200000]."),
-    ("--batch-size", 1, "Pairs per step over all processes [default: 8]."),
-    ("--view-spacing", 1, "Frames between the views of a training pair [default: 20]."),
+    ("--steps", 1, "Optimiser steps [default: 4900 for self-posed, 200000 for the others]."),
+    ("--batch-size", 1, "Pairs per step over all processes [default: 2 for self-posed, else 8]."),
+    (
+        "--view-spacing",
+        1,
+        "Frames between the views of a training pair, paper variants [default: 20].",
+    ),
     ("--val-spacing", 1, "Frames between validation frames [default: 20]."),
     ("--val-every", 0, "Validate every N steps, 0 = never [default: 5000]."),
     ("--val-max-pairs", 0, "At most N validation pairs, evenly spread, 0 = all [default: 0]."),
@@ -250,13 +271,20 @@ def _blame_file(
     file=False,
     help="Continue the run in this folder exactly from its newest checkpoint.",
 )
-@choice_option("--variant", choices=list(VARIANTS), help="Model variant [default: byoc].")
+@choice_option(
+    "--variant",
+    choices=list(VARIANTS),
+    help="self-posed: depth video posed by byoc itself, a metric loss; the recipe of the "
+    "shipped weights, which learns on a CPU. byoc, byoc-geo, byoc-vis, byoc-rot: the "
+    "paper's, a GPU budget [default: self-posed].",
+)
 @click.option("--arch", help="Geometric encoder: compact | minkunet34c [default: compact].")
 @click.option(
     "--init-weights",
     metavar="FILE|shipped",
-    help="Start the geometric encoder from these weights instead of a random initialisation "
-    "(fine-tuning; 'shipped': the weights that ship with byoc). Same --arch and --voxel-size.",
+    help="Start the geometric encoder from these weights (fine-tuning; 'shipped': the weights "
+    "that ship with byoc; 'none': a random initialisation). Same --arch and --voxel-size "
+    "[default: shipped for self-posed with the compact encoder at 0.025 m, else none].",
 )
 @apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[:2]))
 @float_option("--lr", help="Adam learning rate [default: 1e-4].")
@@ -275,7 +303,8 @@ def _blame_file(
 @path_option("--intrinsics", help="Intrinsics file for folders that ship none.")
 @float_option("--depth-scale", help="Depth units per metre [default: the layout's convention].")
 @apply(*(click.option(decls, default=None, help=text) for decls, text in _SWITCHES))
-@click.option("--quiet", is_flag=True, help="Plain log lines instead of a progress bar.")
+@verbose_option
+@quiet_option("Plain log lines instead of a progress bar; no warnings.", expose_value=True)
 @click.pass_context
 @handle_errors
 def train(
@@ -329,7 +358,7 @@ def train(
     if not info.distributed:
         _interrupt_on_sigterm()
     try:
-        display = _Display(quiet or not info.is_main)
+        display = _Display(is_quiet(quiet) or not info.is_main)
         with display:
             hooks = ("on_start", "on_step", "on_log", "on_validation", "on_checkpoint")
             callbacks = TrainCallbacks(**{hook: getattr(display, hook) for hook in hooks})
@@ -345,7 +374,8 @@ def train(
         )
         click.echo(
             f"byoc: trained {result.steps} steps in {result.run_dir}: loss "
-            f"{_fmt(result.first_loss)} -> {_fmt(result.last_loss)}",
+            f"{_fmt(result.first_loss)} -> {_fmt(result.last_loss)} (means of the first and "
+            "last metrics lines)",
             err=True,
         )
         if result.validation:

@@ -7,6 +7,9 @@ checks each output file the user named and refuses (with :class:`InputError` nam
   an input folder;
 * anything that is not a regular file: a folder, a device node (``/dev/null``), a FIFO, a
   socket (``-`` is standard output and is left to the caller);
+* the standard streams named as files (``/dev/stdout``, ``/dev/stderr``), with a hint: the
+  caller turns ``/dev/stdout`` into ``-`` where an option takes it
+  (:func:`byoc_cli.cli.output.claim_outputs`);
 * a folder that does not exist or does not take new files (read-only, ``/proc``), found by
   creating and removing a probe file there;
 * the same file named twice.
@@ -38,9 +41,22 @@ from byoc_cli.io.atomic import STAGER, write_problem
 __all__ = ["OutputSet", "check_run_folder", "is_stdout"]
 
 
+#: paths that name the standard streams of the process (Linux and macOS spellings)
+STDOUT_PATHS = frozenset({"/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"})
+STDERR_PATHS = frozenset({"/dev/stderr", "/dev/fd/2", "/proc/self/fd/2"})
+
+
 def is_stdout(path: str | os.PathLike[str] | None) -> bool:
-    """True for the ``-`` that names standard output."""
-    return path is not None and str(path) == "-"
+    """True for the ``-`` that names standard output, and for ``/dev/stdout`` (and its
+    spellings in :data:`STDOUT_PATHS`), which mean the same stream."""
+    if path is None:
+        return False
+    return str(path) == "-" or os.path.normpath(str(path)) in STDOUT_PATHS
+
+
+def is_stderr(path: str | os.PathLike[str] | None) -> bool:
+    """True for ``/dev/stderr`` and its spellings in :data:`STDERR_PATHS`."""
+    return path is not None and os.path.normpath(str(path)) in STDERR_PATHS
 
 
 def _identity(path: Path) -> tuple[int, int] | None:
@@ -133,9 +149,17 @@ class OutputSet:
         Raises:
             InputError: naming ``path``, when the policy refuses it.
         """
-        if path is None or is_stdout(path):
+        if path is None or str(path) == "-":
             return None
         shown = Path(path)
+        if is_stdout(path):
+            raise InputError(shown, "is standard output: name a file, or '-' where it is taken")
+        if is_stderr(path):
+            raise InputError(
+                shown,
+                "is standard error, which carries byoc's messages; name a file, or '-' where "
+                "the option takes standard output",
+            )
         target = Path(os.path.realpath(shown))  # a symlink is written through
         try:
             st = os.stat(target)

@@ -1,5 +1,9 @@
 """Training configuration: defaults < TOML config file < explicit command-line flags.
 
+The defaults are the paper's, except for the variant ``byoc train`` runs when none is named,
+:data:`DEFAULT_VARIANT` (``self-posed``, the one that learns on a CPU), whose defaults are
+the recipe of the shipped weights (:data:`SHIPPED_RECIPE`: a fine-tune of them).
+
 The key names of :class:`TrainConfig` are public API (TOML files, ``config.json`` in a run
 folder); an unknown key is refused with the closest known spelling.
 """
@@ -24,6 +28,24 @@ VISUAL_VARIANTS = ("byoc", "byoc-vis", "byoc-rot")
 GEOMETRIC_VARIANTS = ("byoc", "byoc-geo", "byoc-rot", "self-posed")
 #: metric losses of the ``self-posed`` variant
 METRIC_LOSSES = ("infonce", "hardest-contrastive")
+#: the variant of a run that names none: the paper's variants do not learn on a CPU (README,
+#: "What a CPU run learns"); this one made the shipped weights
+DEFAULT_VARIANT = "self-posed"
+#: the defaults of ``self-posed`` where they differ from the paper's: the recipe of the shipped
+#: weights (run ``ft1``: their metadata's ``training.recipe``, steps and ``init_weights``), a
+#: fine-tune of the shipped weights on 0.6 m crops
+SHIPPED_RECIPE = {
+    "steps": 4900,
+    "batch_size": 2,
+    "lr": 1e-4,
+    "crop_radius": 0.6,
+    "init_weights": "shipped",
+}
+#: architecture and voxel size of the shipped weights: only such a run can start from them
+SHIPPED_ARCH = "compact"
+SHIPPED_VOXEL_SIZE = 0.025
+#: ``init_weights`` value for a random start (when the variant's default is the shipped weights)
+NO_INIT = "none"
 
 #: keys that may change when a run is resumed; every other key is fixed by the run
 RESUMABLE_KEYS = frozenset(
@@ -313,7 +335,9 @@ def resolve_config(
         flag_values: flags the user gave explicitly; ``None`` values are ignored.
 
     Returns:
-        The effective :class:`TrainConfig`.
+        The effective :class:`TrainConfig`: :data:`DEFAULT_VARIANT` when no variant is
+        given, with the variant's defaults (:func:`variant_defaults`) under the file and the
+        flags; ``init_weights = "none"`` is a random start.
 
     Raises:
         InputError: unknown key; ValueError: an out-of-range value.
@@ -323,7 +347,25 @@ def resolve_config(
     merged.update(
         check_keys({k: v for k, v in (flag_values or {}).items() if v is not None}, "command line")
     )
+    variant = merged.get("variant", DEFAULT_VARIANT)
+    merged = {"variant": variant, **variant_defaults(variant, merged), **merged}
+    if merged.get("init_weights") == NO_INIT:
+        merged["init_weights"] = None
     return TrainConfig(**merged)
+
+
+def variant_defaults(variant: str, values: dict[str, Any]) -> dict[str, Any]:
+    """The defaults of ``variant`` that differ from the paper's (:data:`SHIPPED_RECIPE` for
+    ``self-posed``; the shipped start only for their architecture and voxel size, which
+    ``values``, the settings given, may change)."""
+    if variant != "self-posed":
+        return {}
+    defaults = dict(SHIPPED_RECIPE)
+    arch = values.get("arch", TrainConfig.arch)
+    voxel_size = values.get("voxel_size", TrainConfig.voxel_size)
+    if arch != SHIPPED_ARCH or not math.isclose(voxel_size, SHIPPED_VOXEL_SIZE):
+        del defaults["init_weights"]
+    return defaults
 
 
 def config_from_json(path: str | Path) -> TrainConfig:

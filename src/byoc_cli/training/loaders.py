@@ -42,6 +42,20 @@ def _discover(roots: tuple[str, ...], config: TrainConfig, need_color: bool, lab
     return found
 
 
+def _spacing_hint(lengths: list[int], batch_size: int) -> str:
+    """What to change when sequences of ``lengths`` frames give too few training pairs: the
+    largest ``--view-spacing`` that gives a batch (a sequence of n frames gives n - s pairs
+    at spacing s), else ``--batch-size``."""
+    for spacing in range(max(lengths, default=1) - 1, 0, -1):
+        pairs = sum(max(0, n - spacing) for n in lengths)
+        if pairs >= batch_size:
+            return (
+                f"set --view-spacing {spacing} or less ({pairs} pairs), or a smaller --batch-size"
+            )
+    pairs = sum(max(0, n - 1) for n in lengths)
+    return f"set --batch-size {pairs} or less (at --view-spacing 1), or give longer sequences"
+
+
 def build_datasets(config: TrainConfig) -> tuple[PairDataset, PairDataset | None, list[str]]:
     """Training pairs, validation pairs (or None) and the training sequences' names.
 
@@ -60,11 +74,12 @@ def build_datasets(config: TrainConfig) -> tuple[PairDataset, PairDataset | None
         use_color=config.uses_visual,
     )
     if len(train) < config.batch_size:
-        lengths = ", ".join(str(len(s.frames)) for s in train_seqs)
+        lengths = [len(s.frames) for s in train_seqs]
         raise DatasetError(
             config.rgbd_dir[0],
             f"{len(train)} training pair(s) at view spacing {config.view_spacing} (sequences of "
-            f"{lengths} frames), fewer than the batch size {config.batch_size}",
+            f"{', '.join(map(str, lengths))} frames), fewer than the batch size "
+            f"{config.batch_size}: {_spacing_hint(lengths, config.batch_size)}",
         )
     names = [sequence_name(s, f"{config.rgbd_dir[0]}#{k}") for k, s in enumerate(train_seqs)]
     val = None

@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import torch
@@ -136,29 +136,49 @@ def write_encoder(
         model,
         voxel_size=config.voxel_size,
         variant=config.variant,
-        data=data,
+        data=[dataset_name(name) for name in data],
         steps=steps,
         seed=config.seed,
         metrics=clean,
     )
     if recipe is not None:
         meta["training"]["recipe"] = recipe
+    if config.val_dir:
+        meta["training"]["validation_data"] = [dataset_name(d) for d in config.val_dir]
+        meta["training"]["val_spacing"] = config.val_spacing
     if config.init_weights:
         meta["training"]["init_weights"] = _describe_initial_weights(config)
     return save_weights(path, model, meta, dtype=dtype)
 
 
+def dataset_name(name: str) -> str:
+    """A training or validation set as exported metadata names it: a sequence name as given
+    (``office/seq1``), but a folder path (absolute, ``~``, ``..``) reduced to its last part,
+    so that a weights file names datasets and never the folders of the machine it was
+    trained on."""
+    path = PurePath(name)
+    if path.is_absolute() or name.startswith("~") or ".." in path.parts:
+        return path.name
+    return name
+
+
 def _describe_initial_weights(config: TrainConfig) -> dict[str, Any]:
-    """``{"file": ..., "sha256": ...}`` of the weights a run started from (sha256 None when
+    """``{"file": name, "sha256": ...}`` of the weights a run started from: the file's name
+    without its folder; for ``shipped``, also which release shipped them (sha256 None when
     the file is gone by the time the run exports)."""
     import hashlib
+
+    from byoc_cli import __version__
 
     path = initial_weights_path(config)
     try:
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError:
         digest = None
-    return {"file": config.init_weights, "sha256": digest}
+    described: dict[str, Any] = {"file": path.name, "sha256": digest}
+    if config.init_weights == SHIPPED:
+        described["description"] = f"the weights shipped with byoc-cli {__version__}"
+    return described
 
 
 #: ``init_weights`` value that names the weights shipped with the package

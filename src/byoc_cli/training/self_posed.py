@@ -99,7 +99,7 @@ def discover_training_sequences(config: TrainConfig) -> list[Any]:
             read_poses=False,
         )
     if not sequences:
-        raise DatasetError(f"no training sequence in {', '.join(config.rgbd_dir)}")
+        raise DatasetError(", ".join(config.rgbd_dir), "holds no training sequence")
     return sequences
 
 
@@ -301,7 +301,7 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     _check_run_folder(run_dir, resume, CONFIG_FILE)
     run_dir.mkdir(parents=True, exist_ok=True)
     sequences = discover_training_sequences(config)
-    data_names = [str(s.root) for s in sequences]
+    data_names = [s.name for s in sequences]
     write_run_config(run_dir, config, {"world_size": 1, "data": data_names})
     val_pairs = validation_pairs(config) if config.val_dir else []
 
@@ -350,8 +350,11 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
         pairs = [pairs_from_json(r) for r in records]
         flat = [(s, p) for s, seq_pairs in enumerate(pairs) for p in seq_pairs]
         if not flat:
+            gaps = ", ".join(map(str, config.pair_gaps))
             raise DatasetError(
-                f"no self-posed pair passed verification in the training data (round {number})"
+                ", ".join(config.rgbd_dir),
+                f"no self-posed pair passed verification (round {number}): give longer "
+                f"sequences, or smaller frame gaps (pair_gaps in --config, now {gaps})",
             )
         frames = build_frame_cache(config, sequences, pairs, frames)
         logged = read_metrics(metrics_path) if metrics_path.exists() else []

@@ -117,6 +117,18 @@ def export_encoder(
     return write_encoder(encoder, config, path, data, steps, metrics, recipe=recipe, dtype=dtype)
 
 
+def _run_data_names(run_dir: Path, config: TrainConfig) -> list[str]:
+    """The training sequences a run folder's ``config.json`` names, else the folders of
+    ``config.rgbd_dir`` (export reduces paths to names)."""
+    try:
+        names = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))["data"]
+    except (OSError, ValueError, KeyError, TypeError):
+        names = None
+    if isinstance(names, list) and names and all(isinstance(n, str) for n in names):
+        return names
+    return list(config.rgbd_dir)
+
+
 def export_checkpoint(
     checkpoint: str | Path, path: str | Path, dtype: torch.dtype = torch.float32
 ) -> str:
@@ -144,7 +156,7 @@ def export_checkpoint(
                 for k, v in vals[-1].items()
                 if k not in ("kind", "step", "val_time_s")
             }
-    data = list(config.rgbd_dir)
+    data = _run_data_names(Path(checkpoint).parents[1], config)
     return export_encoder(
         encoder, config, Path(path), data, int(state["step"]), metrics, dtype=dtype
     )
