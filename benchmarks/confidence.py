@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from any_scan import errors, make  # the same copies and the same judge as any_scan.py
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("BYOC_SHARED_DATA", ROOT.parent / "shared" / "data"))
 RGBD = DATA / "rgbd"
@@ -132,7 +134,7 @@ def variant_pairs() -> Iterator[tuple]:
         for label, recipe in recipes:
 
             def load(which, src=src, tgt=tgt, recipe=recipe, seed=n):
-                return _variant(src(), tgt(), recipe, seed)[which]
+                return make(src(), tgt(), recipe, seed)[which]
 
             s = recipe.get("scale", 1.0)
             yield (
@@ -143,21 +145,6 @@ def variant_pairs() -> Iterator[tuple]:
                 T,
                 s,
             )
-
-
-def _variant(src, tgt, recipe: dict, seed: int):
-    rng = np.random.default_rng(seed)
-    k = recipe.get("thin")
-    if k:
-        src = src[np.sort(rng.permutation(len(src))[: len(src) // k])]
-        if recipe["both"]:
-            tgt = tgt[np.sort(rng.permutation(len(tgt))[: len(tgt) // k])]
-    sigma = 0.025 * recipe.get("noise", 0.0)
-    if sigma:
-        src = src + rng.normal(0, sigma, src.shape)
-        tgt = tgt + rng.normal(0, sigma, tgt.shape)
-    s = recipe.get("scale", 1.0)
-    return src * s, tgt * s
 
 
 def negative_pairs() -> Iterator[tuple]:
@@ -186,13 +173,6 @@ def negative_pairs() -> Iterator[tuple]:
         yield f"desk-onto-cabinet:{n}", "negative", a.source.load, b.target.load, None, 1.0
     for n, (a, b) in enumerate(zip(tabletop, cabinet, strict=False)):
         yield f"tabletop-onto-cabinet:{n}", "negative", a.source.load, b.target.load, None, 1.0
-
-
-def errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
-    """Rotation (deg) and translation of ``inv(T) @ T_gt``."""
-    D = np.linalg.inv(T) @ T_gt
-    cos = np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)
-    return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(D[:3, 3]))
 
 
 def collect(out: Path, features: str, part: tuple[int, int], groups: list[str]) -> None:
