@@ -196,6 +196,11 @@ def test_confidence_gate_exit_3(runner, random_weights, tmp_path):
     assert out.exists()  # registered: outputs are written, the exit code carries the verdict
 
 
+def _surface_mm(xy: np.ndarray) -> np.ndarray:
+    """A wavy surface 4 m across, in millimetres."""
+    return np.column_stack([xy, 100 * np.sin(xy[:, 0] / 500)])
+
+
 def _write(path: Path, content: bytes) -> Path:
     path.write_bytes(content)
     return path
@@ -212,7 +217,7 @@ BAD_INPUTS = {
     ),
     "millimetres": (
         lambda d: (
-            np.save(d / "mm.npy", np.random.default_rng(0).uniform(0, 4000, (500, 3))),
+            np.save(d / "mm.npy", _surface_mm(np.random.default_rng(0).uniform(0, 4000, (500, 2)))),
             d / "mm.npy",
         )[1],
         "same units",
