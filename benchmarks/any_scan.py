@@ -12,7 +12,7 @@ Prints one row per variant and method: pairs right, median rotation / translatio
 median voxel chosen, and time against the unscaled pair's (scaled copies).
 
 Usage: python benchmarks/any_scan.py [--methods byoc fpfh] [--variants scale thin noise]
-    [--json OUT.json]
+    [--weights W.safetensors] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -123,11 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", default=["byoc", "fpfh"])
     parser.add_argument("--variants", nargs="+", default=["scale", "thin", "noise"])
     parser.add_argument("--json", type=Path, default=None, help="write every row here")
+    parser.add_argument("--weights", type=Path, default=None, help="for byoc (default: shipped)")
     args = parser.parse_args(argv)
     data = pairs()
     rows = []
     for method in args.methods:
-        registrar = Registrar(method, device="cpu")
+        weights = args.weights if method == "byoc" else None
+        registrar = Registrar(method, weights=weights, device="cpu")
         base_time: dict[str, float] = {}
         for label, recipe in variants(args.variants):
             cells = []
