@@ -8,15 +8,26 @@ built on them. Results are NamedTuples of numpy arrays and numbers. Errors are t
 errors of :mod:`byoc_cli.errors`.
 
 torch and the encoder are imported when a function is first called, not on import.
+
+Threads: importing this module before torch is imported applies the tool's thread policy
+(:mod:`byoc_cli.threads`): it puts ``OMP_WAIT_POLICY=PASSIVE`` and ``OMP_NUM_THREADS`` (the
+cores the process may use: affinity and cgroup quota) into ``os.environ`` unless they are
+set, so that torch starts with them. When torch is already imported nothing is changed.
+A :class:`Registrar` runs its work on ``threads`` worker threads (default: torch's thread
+count) with one torch thread each: the two clouds of a pair are read, encoded and
+prepared side by side, and :meth:`Registrar.executor` lets callers run pairs side by side.
 """
 
 from __future__ import annotations
 
 import os
+import sys
+import threading
 import time
 import warnings
 from collections import OrderedDict
 from collections.abc import Mapping
+from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,6 +43,10 @@ from byoc_cli.api_types import (
     load_cloud,
     load_weights,
 )
+from byoc_cli.threads import apply_thread_policy, in_worker
+
+if "torch" not in sys.modules:  # only before torch: OpenMP reads its settings when loaded
+    apply_thread_policy()
 
 __all__ = [
     "DEPTH_EXTENSIONS",
@@ -54,10 +69,12 @@ class Registrar:
             shipped weights.
         voxel_size: metres; None: the weights' voxel size (byoc) or the fpfh default.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
+        threads: worker threads, each running torch single-threaded (default: torch's
+            thread count, which the tool's thread policy sets to the usable cores).
 
     Raises:
         WeightsError: the weights cannot be loaded.
-        ValueError: an unknown ``features`` name.
+        ValueError: an unknown ``features`` name, ``threads`` below 1.
     """
 
     def __init__(
@@ -66,13 +83,21 @@ class Registrar:
         weights: str | os.PathLike[str] | LoadedWeights | None = None,
         voxel_size: float | None = None,
         device: str = "auto",
+        threads: int | None = None,
     ) -> None:
+        import torch
+
         from byoc_cli.pipeline.register import FEATURE_DEFAULTS
 
         if features not in FEATURE_DEFAULTS:
             raise ValueError(
                 f"features must be one of {sorted(FEATURE_DEFAULTS)}, got {features!r}"
             )
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be at least 1, got {threads}")
+        self.threads = threads or torch.get_num_threads()
+        self._executor = None
+        self._lock = threading.Lock()
         self.features = features
         self.defaults: Mapping[str, Any] = FEATURE_DEFAULTS[features]
         self.device = _resolve_device(device)
@@ -90,21 +115,38 @@ class Registrar:
     #: clouds whose refinement levels are kept
     REFINE_CACHE = 8
 
+    def executor(self):
+        """The registrar's worker pool (:func:`byoc_cli.threads.worker_pool`, ``threads``
+        workers, one torch thread each), made on first use; submit independent work to it."""
+        from byoc_cli.threads import worker_pool
+
+        with self._lock:
+            if self._executor is None:
+                self._executor = worker_pool(self.threads)
+            return self._executor
+
     def _refine_cloud(self, feats: Features):
         """The :class:`~byoc_cli.pipeline.refine.RefineCloud` of ``feats.cloud`` (kept for
-        the ``REFINE_CACHE`` most recently used clouds)."""
+        the ``REFINE_CACHE`` most recently used clouds; its levels are built on use)."""
         from byoc_cli.pipeline.refine import RefineCloud
 
         key = id(feats.cloud)
-        hit = self._refine_clouds.get(key)
-        if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == feats.voxel_size:
-            self._refine_clouds.move_to_end(key)
-            return hit[1]
-        prepared = RefineCloud(feats.cloud, feats.voxel_size)
-        self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: the id stays its
-        while len(self._refine_clouds) > self.REFINE_CACHE:
-            self._refine_clouds.popitem(last=False)
-        return prepared
+        with self._lock:
+            hit = self._refine_clouds.get(key)
+            if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == feats.voxel_size:
+                self._refine_clouds.move_to_end(key)
+                return hit[1]
+            prepared = RefineCloud(feats.cloud, feats.voxel_size)
+            self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: id stays its
+            while len(self._refine_clouds) > self.REFINE_CACHE:
+                self._refine_clouds.popitem(last=False)
+            return prepared
+
+    def prepare_refinement(self, feats: Features, source: bool, target: bool) -> None:
+        """Build the multiscale-refinement levels of ``feats.cloud`` now, as a source, a
+        target or both (else :meth:`match` builds them); nothing without a cloud."""
+        if feats.cloud is not None:
+            self._refine_cloud(feats).prepare(source=source, target=target)
 
     def _make_extractor(self, weights: Any, voxel_size: float | None):
         from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
@@ -268,27 +310,73 @@ class Registrar:
         """Read both clouds, extract their features and :meth:`match` them.
 
         ``source`` and ``target`` are arrays or files as for :meth:`extract`; ``settings`` are
-        :meth:`match`'s keywords. ``timings`` also hold ``load``, ``features_src``,
-        ``features_tgt`` and ``total``.
+        :meth:`match`'s keywords. The two clouds are read, encoded and prepared for the
+        refinement side by side on the workers. ``timings`` also hold ``load`` (both reads),
+        ``features_src``, ``features_tgt``, ``prepare_src``, ``prepare_tgt`` (multiscale
+        levels) and ``total`` (wall time).
         """
         start = time.perf_counter()
-        load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
-        points_src, name_src = _as_points(source, "source", scale, **load)
-        points_tgt, name_tgt = _as_points(target, "target", scale, **load)
-        t_load = time.perf_counter()
-        src = self._extract(points_src, scale, name_src)
-        t_src = time.perf_counter()
-        tgt = self._extract(points_tgt, scale, name_tgt)
-        t_tgt = time.perf_counter()
-        result = self.match(src, tgt, **settings)
+        load = {"scale": scale, "intrinsics": intrinsics, "depth_scale": depth_scale}
+        multiscale = (settings.get("refine") or self.defaults["refine"]) == "multiscale"
+        pool = _InPlace() if in_worker() else self.executor()
+        jobs = [
+            pool.submit(
+                self._prepared_features,
+                cloud,
+                label,
+                load,
+                multiscale and k == 0,
+                multiscale and k == 1,
+            )
+            for k, (cloud, label) in enumerate(((source, "source"), (target, "target")))
+        ]
+        (src, t_src), (tgt, t_tgt) = (job.result() for job in jobs)
+        result = pool.submit(self.match, src, tgt, **settings).result()
         timings = {
-            "load": t_load - start,
-            "features_src": t_src - t_load,
-            "features_tgt": t_tgt - t_src,
+            "load": t_src["load"] + t_tgt["load"],
+            "features_src": t_src["features"],
+            "features_tgt": t_tgt["features"],
+            "prepare_src": t_src["prepare"],
+            "prepare_tgt": t_tgt["prepare"],
             **result.timings,
             "total": time.perf_counter() - start,
         }
         return result._replace(timings=timings)
+
+    def _prepared_features(
+        self, cloud: Any, label: str, load: dict, as_source: bool, as_target: bool
+    ) -> tuple[Features, dict[str, float]]:
+        """Read one cloud, extract its features and prepare its refinement levels;
+        the features and the seconds of each step."""
+        start = time.perf_counter()
+        points, name = _as_points(
+            cloud,
+            label,
+            load["scale"],
+            intrinsics=load["intrinsics"],
+            depth_scale=load["depth_scale"],
+        )
+        loaded = time.perf_counter()
+        feats = self._extract(points, load["scale"], name)
+        extracted = time.perf_counter()
+        if as_source or as_target:
+            self.prepare_refinement(feats, as_source, as_target)
+        done = time.perf_counter()
+        return feats, {
+            "load": loaded - start,
+            "features": extracted - loaded,
+            "prepare": done - extracted,
+        }
+
+
+class _InPlace:
+    """:meth:`submit` runs the call at once (inside a worker, where waiting for the pool
+    could wait for oneself)."""
+
+    def submit(self, fn, *args: Any, **kwargs: Any) -> Future:
+        future: Future = Future()
+        future.set_result(fn(*args, **kwargs))
+        return future
 
 
 def _resolve_device(device: str) -> str:
