@@ -202,6 +202,7 @@ def register_batch(
         raise
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
+    started = time.perf_counter()
     with _Summary(summary) as lines:
         for entry, output in skipped:
             lines.write(_record(entry, output, SKIPPED))
@@ -228,9 +229,11 @@ def register_batch(
                     progress.advance(f"{counts[FAILED]} failed")
                     if record["status"] == FAILED:
                         click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
+    seconds = time.perf_counter() - started
     click.echo(
         f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
-        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}",
+        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}; "
+        f"{len(todo)} pairs in {seconds:.1f} s ({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
         err=True,
     )
     if counts[FAILED]:
