@@ -142,11 +142,14 @@ class Registrar:
                 self._refine_clouds.popitem(last=False)
             return prepared
 
-    def prepare_refinement(self, feats: Features, source: bool, target: bool) -> None:
-        """Build the multiscale-refinement levels of ``feats.cloud`` now, as a source, a
-        target or both (else :meth:`match` builds them); nothing without a cloud."""
+    def prepare_refinement(
+        self, feats: Features, source: bool, target: bool, levels: Any = None
+    ) -> None:
+        """Build the multiscale-refinement ``levels`` (default: all) of ``feats.cloud`` now,
+        as a source, a target or both (else :meth:`match` builds them); nothing without a
+        cloud. Threads may build different levels of one cloud at once."""
         if feats.cloud is not None:
-            self._refine_cloud(feats).prepare(source=source, target=target)
+            self._refine_cloud(feats).prepare(source=source, target=target, levels=levels)
 
     def _make_extractor(self, weights: Any, voxel_size: float | None):
         from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
@@ -359,8 +362,11 @@ class Registrar:
         loaded = time.perf_counter()
         feats = self._extract(points, load["scale"], name)
         extracted = time.perf_counter()
-        if as_source or as_target:
-            self.prepare_refinement(feats, as_source, as_target)
+        if as_target:  # the finer (larger) levels to the next idle worker, the first here
+            self.executor().submit(self.prepare_refinement, feats, as_source, True, (2, 1))
+            self.prepare_refinement(feats, as_source, True, (0,))
+        elif as_source:
+            self.prepare_refinement(feats, True, False)
         done = time.perf_counter()
         return feats, {
             "load": loaded - start,

@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -107,17 +107,18 @@ class RefineCloud:
         self._averages: dict[int, torch.Tensor] = {}
         self._sources: dict[int, torch.Tensor] = {}
         self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
-        self._lock = threading.RLock()
+        # one lock per level: levels are built side by side, each once
+        self._locks = [threading.RLock() for _ in self.levels]
 
     def _average(self, level: int) -> torch.Tensor:
-        with self._lock:
+        with self._locks[level]:
             if level not in self._averages:
                 self._averages[level] = voxel_average(self.points, self.levels[level][0])
             return self._averages[level]
 
     def source(self, level: int) -> torch.Tensor:
         """``(K, 3)`` source points of ``level``."""
-        with self._lock:
+        with self._locks[level]:
             if level not in self._sources:
                 p = self._average(level)
                 self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
@@ -126,7 +127,7 @@ class RefineCloud:
     def target(self, level: int) -> tuple[torch.Tensor, torch.Tensor, CellIndex]:
         """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and a
         :class:`CellIndex` over them at the level's voxel."""
-        with self._lock:
+        with self._locks[level]:
             if level not in self._targets:
                 size, _, radius = self.levels[level]
                 q = self._average(level)
@@ -134,9 +135,11 @@ class RefineCloud:
                 self._targets[level] = (q, n, CellIndex(q, size))
             return self._targets[level]
 
-    def prepare(self, source: bool = True, target: bool = True) -> RefineCloud:
-        """Build every level now (as a source, a target or both); returns ``self``."""
-        for level in range(len(self.levels)):
+    def prepare(
+        self, source: bool = True, target: bool = True, levels: Sequence[int] | None = None
+    ) -> RefineCloud:
+        """Build ``levels`` (default: all) now, as a source, a target or both; ``self``."""
+        for level in range(len(self.levels)) if levels is None else levels:
             if source:
                 self.source(level)
             if target:
