@@ -11,14 +11,26 @@ Prints, on the 3DMatch sample fragments (or any pair given), at 2.5 cm:
     processes on the same pairs (every pair of the sample's fragments; whole processes,
     shipped weights, defaults), and their ratio;
   * whole `byoc register` processes on the pair: the default (shipped weights, learned-feature
-    defaults) against `--features fpfh`, interleaved, medians and their ratio.
+    defaults) against `--features fpfh`, interleaved, medians and their ratio;
+  * `--only load`: whole processes under load (`--cases`: idle; one core taken by a busy
+    loop (`busy`) or every core (`allbusy`); `--copies` copies of each command at once, as
+    `xargs -P` runs them (`parallel`)) on three inputs
+    (`--inputs`: the fragment pair; a full-resolution TUM depth-frame pair, 640 x 480 PNGs;
+    a large pair of 1-2 M points each fused at run time from TUM fr1_desk depth frames with
+    their ground-truth poses): the default, `--features fpfh` and Open3D's FPFH + RANSAC
+    (benchmarks/o3d_fpfh_ransac.py) interleaved, medians of wall and CPU seconds per command,
+    their ratios, and per-stage medians from the `--json` reports.
 
-Usage: python benchmarks/register.py [--repeats 5] [--only batch|whole] [SOURCE TARGET]
+Usage: python benchmarks/register.py [--repeats 5] [--only batch|whole|load] [SOURCE TARGET]
+       python benchmarks/register.py --only load [--cases idle,busy,parallel]
+           [--inputs fragment,depth,large] [--copies 3] [--repeats 5]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import os
 import resource
 import statistics
@@ -27,6 +39,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -41,6 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("BYOC_SHARED_DATA", ROOT.parent / "shared" / "data"))
 SAMPLE = DATA / "3dmatch" / "sample" / "3DMatch" / "7-scenes-redkitchen"
 VOXEL = 0.025
+BYOC = [sys.executable, "-m", "byoc_cli.cli.main", "-q"]
 
 
 def median_time(fn, repeats: int) -> tuple[float, object]:
@@ -131,45 +145,73 @@ def peak_rss_of_command(src: Path, tgt: Path, weights: Path) -> float:
     return max(before, after) / 1024.0
 
 
-def batch_vs_loop(folder: Path) -> dict:
-    """Whole-process pairs per second: one `register-batch` against one `register` per pair."""
+def _sample_pairs(folder: Path) -> list[tuple[Path, Path]]:
     import itertools
 
     clouds = sorted(folder.glob("cloud_bin_*.ply"))
     pairs = list(itertools.combinations(clouds, 2))
     if not pairs:
         raise SystemExit(f"no cloud_bin_*.ply pairs in {folder} (set BYOC_SHARED_DATA)")
-    byoc = [sys.executable, "-m", "byoc_cli.cli.main", "-q"]
+    return pairs
+
+
+def _timed_batch(listing: Path, out: Path, extra: list[str]) -> tuple[float, float]:
+    """Wall and CPU seconds of one `byoc register-batch` process."""
+    start = time.perf_counter()
+    proc = subprocess.Popen([*BYOC, "register-batch", str(listing), "--out-dir", str(out), *extra])
+    _, status, usage = os.wait4(proc.pid, 0)
+    assert os.waitstatus_to_exitcode(status) in (0, 3), status
+    return time.perf_counter() - start, usage.ru_utime + usage.ru_stime
+
+
+def batch_vs_loop(folder: Path, repeats: int, loop: bool = True) -> dict:
+    """Whole-process pairs per second: `register-batch` (default and --features fpfh,
+    interleaved, ``repeats`` each) and, once, one `byoc register` process per pair."""
+    pairs = _sample_pairs(folder)
+    runs: dict[str, list[tuple[float, float]]] = {"default": [], "fpfh": []}
     with tempfile.TemporaryDirectory() as tmp:
         listing = Path(tmp) / "pairs.txt"
         listing.write_text("".join(f"{a} {b}\n" for a, b in pairs))
-        start = time.perf_counter()
-        for k, (a, b) in enumerate(pairs):
-            out = Path(tmp) / f"single_{k}.txt"
-            subprocess.run([*byoc, "register", str(a), str(b), "-o", str(out)], check=True)
-        loop_s = time.perf_counter() - start
-        start = time.perf_counter()
-        done = subprocess.run([*byoc, "register-batch", str(listing), "--out-dir", tmp])
-        batch_s = time.perf_counter() - start
-        assert done.returncode in (0, 3), done.returncode
-        same = all(
-            (Path(tmp) / f"single_{k}.txt").read_bytes()
-            == (Path(tmp) / f"{a.stem}__{b.stem}.txt").read_bytes()
-            for k, (a, b) in enumerate(pairs)
-        )
-    return {"pairs": len(pairs), "loop_s": loop_s, "batch_s": batch_s, "same": same}
+        for k in range(repeats):
+            for name, extra in (("default", []), ("fpfh", ["--features", "fpfh"])):
+                runs[name].append(_timed_batch(listing, Path(tmp) / f"{name}{k}", extra))
+        loop_s, same = None, None
+        if loop:
+            start = time.perf_counter()
+            for k, (a, b) in enumerate(pairs):
+                out = Path(tmp) / f"single_{k}.txt"
+                subprocess.run([*BYOC, "register", str(a), str(b), "-o", str(out)], check=True)
+            loop_s = time.perf_counter() - start
+            same = all(
+                (Path(tmp) / f"single_{k}.txt").read_bytes()
+                == (Path(tmp) / "default0" / f"{a.stem}__{b.stem}.txt").read_bytes()
+                for k, (a, b) in enumerate(pairs)
+            )
+    return {"pairs": len(pairs), "runs": runs, "loop_s": loop_s, "same": same}
 
 
-def print_batch(folder: Path) -> None:
-    b = batch_vs_loop(folder)
-    loop_rate, batch_rate = b["pairs"] / b["loop_s"], b["pairs"] / b["batch_s"]
+def print_batch(folder: Path, repeats: int = 1, loop: bool = True) -> None:
+    load_before = os.getloadavg()[0]
+    b = batch_vs_loop(folder, repeats, loop)
+    n = b["pairs"]
     print(
-        f"\nwhole process, {b['pairs']} pairs ({folder.name}, shipped weights, defaults):\n"
-        f"  loop of `byoc register`: {b['loop_s']:.1f} s, {loop_rate:.2f} pairs/s\n"
-        f"  `byoc register-batch`:   {b['batch_s']:.1f} s, {batch_rate:.2f} pairs/s\n"
-        f"  ratio batch / loop: {batch_rate / loop_rate:.2f}x (bar 3x); "
-        f"transforms byte-identical: {b['same']}"
+        f"\nwhole process, {n} pairs ({folder.name}), median of {repeats} "
+        f"(load average {load_before:.2f} -> {os.getloadavg()[0]:.2f}):"
     )
+    med = {}
+    for name, rs in b["runs"].items():
+        wall, cpu = statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs)
+        med[name] = wall
+        label = "`byoc register-batch`" + (" --features fpfh" if name == "fpfh" else "")
+        print(f"  {label:<40} {wall:6.1f} s, CPU {cpu:6.1f} s, {n / wall:.2f} pairs/s")
+    print(f"  default / fpfh wall: {med['default'] / med['fpfh']:.2f}; bar: >= 2 pairs/s")
+    if b["loop_s"] is not None:
+        loop_rate = n / b["loop_s"]
+        print(
+            f"  loop of `byoc register`: {b['loop_s']:.1f} s, {loop_rate:.2f} pairs/s; "
+            f"batch / loop {n / med['default'] / loop_rate:.2f}x; "
+            f"transforms byte-identical: {b['same']}"
+        )
 
 
 def whole_process(src: Path, tgt: Path, repeats: int) -> None:
@@ -190,6 +232,158 @@ def whole_process(src: Path, tgt: Path, repeats: int) -> None:
     )
 
 
+# ------------------------------------------------------------------ whole processes under load
+
+TUM_DEPTH = DATA / "rgbd" / "tum_fr3_cabinet"  # Kinect (fr3), 640 x 480, keyframes
+TUM_LARGE = DATA / "rgbd" / "tum_fr1_desk_full"  # Kinect (fr1), every second frame
+#: frames of TUM_LARGE fused into the source and the target of the large pair
+LARGE_FRAMES = ((0, 2, 4, 6, 8), (10, 12, 14, 16, 18))
+O3D_PEER = Path(__file__).resolve().parent / "o3d_fpfh_ransac.py"
+VARIANTS = ("default", "fpfh", "open3d")
+
+
+class Input(NamedTuple):
+    """A pair to register: its name, the two files and the options they need."""
+
+    name: str
+    source: Path
+    target: Path
+    options: list[str]
+
+
+def _tum_depth_files(folder: Path) -> list[tuple[float, Path]]:
+    rows = []
+    for line in (folder / "depth.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            stamp, name = line.split()[:2]
+            rows.append((float(stamp), folder / name))
+    return rows
+
+
+def depth_pair() -> Input:
+    """The first two keyframes of TUM fr3_cabinet, as the 16-bit PNGs a Kinect writes."""
+    (_, a), (_, b) = _tum_depth_files(TUM_DEPTH)[:2]
+    options = ["--intrinsics", str(TUM_DEPTH / "intrinsics.json"), "--depth-scale", "5000"]
+    return Input("depth-frame pair", a, b, options)
+
+
+def large_pair(folder: Path) -> Input:
+    """Two clouds of 1-2 M points each: five TUM fr1_desk depth frames each, back-projected
+    and put into the camera frame of the first with the ground-truth poses (NPY files)."""
+    from byoc_cli.io.depth import read_depth_cloud
+    from byoc_cli.io.trajectory import read_tum_trajectory
+
+    files = _tum_depth_files(TUM_LARGE)
+    stamps, poses = read_tum_trajectory(TUM_LARGE / "groundtruth.txt")
+    paths = []
+    for k, frames in enumerate(LARGE_FRAMES):
+        clouds, first = [], None
+        for index in frames:
+            stamp, path = files[index]
+            T_world_cam = poses[int(np.argmin(np.abs(stamps - stamp)))]
+            first = T_world_cam if first is None else first
+            T = np.linalg.inv(first) @ T_world_cam
+            points = read_depth_cloud(path, TUM_LARGE / "intrinsics.json", 5000.0).points
+            clouds.append(points @ T[:3, :3].T + T[:3, 3])
+        paths.append(folder / f"large_{k}.npy")
+        np.save(paths[-1], np.concatenate(clouds))
+    return Input("large pair", paths[0], paths[1], [])
+
+
+def _command(variant: str, pair: Input, out: Path) -> list[str]:
+    if variant == "open3d":
+        extra = pair.options
+        return [sys.executable, str(O3D_PEER), str(pair.source), str(pair.target), *extra]
+    features = ["--features", "fpfh"] if variant == "fpfh" else []
+    files = ["-o", str(out / "T.txt"), "--json", str(out / "report.json")]
+    return [*BYOC, "register", str(pair.source), str(pair.target), *pair.options, *features, *files]
+
+
+def _run_copies(variant: str, pair: Input, copies: int, tmp: Path) -> tuple[float, float, dict]:
+    """``copies`` processes of one command at once: wall seconds until the last ends, median
+    CPU seconds (user + system) per process, and the first copy's stage timings."""
+    outs = [tmp / f"{variant}_{k}" for k in range(copies)]
+    for out in outs:
+        out.mkdir(exist_ok=True)
+    start = time.perf_counter()
+    procs = [
+        subprocess.Popen(_command(variant, pair, out), stdout=subprocess.PIPE, text=True)
+        for out in outs
+    ]
+    cpu, stdout = [], []
+    for proc in procs:
+        text = proc.stdout.read()
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode not in (0, 3):
+            raise SystemExit(f"{variant} on the {pair.name} exited {proc.returncode}")
+        cpu.append(usage.ru_utime + usage.ru_stime)
+        stdout.append(text)
+    wall = time.perf_counter() - start
+    if variant == "open3d":
+        stages = json.loads(stdout[0].strip().splitlines()[-1])
+    else:
+        stages = json.loads((outs[0] / "report.json").read_text())["timings_s"]
+    return wall, statistics.median(cpu), stages
+
+
+@contextlib.contextmanager
+def _case(name: str):
+    """The machine state of a case: ``busy`` takes one core with a busy loop, ``allbusy``
+    every core (one busy loop per CPU)."""
+    count = {"busy": 1, "allbusy": os.cpu_count() or 1}.get(name, 0)
+    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for loop in loops:
+            loop.kill()
+            loop.wait()
+
+
+def load_matrix(pairs: list[Input], cases: list[str], copies: int, repeats: int) -> None:
+    """Whole processes of every variant on every pair in every case, interleaved; prints
+    medians, ratios and stages."""
+    for case in cases:
+        n = copies if case == "parallel" else 1
+        for pair in pairs:
+            runs: dict[str, list] = {v: [] for v in VARIANTS}
+            load_before = os.getloadavg()[0]
+            with _case(case), tempfile.TemporaryDirectory() as tmp:
+                for _ in range(repeats):
+                    for variant in VARIANTS:
+                        runs[variant].append(_run_copies(variant, pair, n, Path(tmp)))
+            _print_matrix_row(case, n, pair, runs, load_before, os.getloadavg()[0])
+
+
+def _print_matrix_row(case, copies, pair, runs, load_before, load_after) -> None:
+    med = {
+        v: (statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs))
+        for v, rs in runs.items()
+    }
+    what = {
+        "idle": "idle",
+        "busy": "one core busy",
+        "allbusy": "every core busy",
+        "parallel": f"{copies} copies at once",
+    }[case]
+    print(
+        f"\n{pair.name} ({pair.source.name} -> {pair.target.name}), {what}, median of "
+        f"{len(runs['default'])} (load average {load_before:.2f} -> {load_after:.2f}):"
+    )
+    fw, fc = med["fpfh"]
+    ow, oc = med["open3d"]
+    for v, (w, c) in med.items():
+        print(
+            f"  {v:<8} wall {w:6.2f} s  CPU {c:6.2f} s per process   / fpfh: wall "
+            f"{w / fw:.2f} CPU {c / fc:.2f}   / open3d: wall {w / ow:.2f} CPU {c / oc:.2f}"
+        )
+    for v, rs in runs.items():
+        names = rs[0][2].keys()
+        stages = {k: statistics.median(r[2].get(k, float("nan")) for r in rs) for k in names}
+        print(f"  {v} stages: " + ", ".join(f"{k} {t:.2f}" for k, t in stages.items()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -200,11 +394,31 @@ def main() -> None:
     )
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument(
-        "--only", choices=["batch", "whole"], help="Run only the batch-vs-loop or whole part."
+        "--only",
+        choices=["batch", "whole", "load"],
+        help="Run only the batch-vs-loop part, the whole-process part or the load matrix.",
+    )
+    parser.add_argument(
+        "--cases", default="idle,busy,parallel", help="Load-matrix cases (also allbusy)."
+    )
+    parser.add_argument("--inputs", default="fragment,depth,large", help="Load-matrix inputs.")
+    parser.add_argument("--copies", type=int, default=3, help="Copies at once (parallel case).")
+    parser.add_argument(
+        "--no-loop", action="store_true", help="Batch part: skip the loop of single registers."
     )
     args = parser.parse_args()
+    if args.only == "load":
+        with tempfile.TemporaryDirectory() as tmp:
+            makers = {
+                "fragment": lambda: Input("fragment pair", *args.pair, []),
+                "depth": depth_pair,
+                "large": lambda: large_pair(Path(tmp)),
+            }
+            pairs = [makers[name]() for name in args.inputs.split(",")]
+            load_matrix(pairs, args.cases.split(","), args.copies, args.repeats)
+        return
     if args.only == "batch":
-        print_batch(SAMPLE)
+        print_batch(SAMPLE, args.repeats, loop=not args.no_loop)
         return
     if args.only == "whole":
         whole_process(*args.pair, args.repeats)

@@ -5,8 +5,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import pytest
-import torch
+from byoc_cli.threads import set_wait_policy
+
+# before torch loads OpenMP (just below): the tests wait passively, as `byoc` does, whether
+# they are run by the README's command or by CI; test subprocesses inherit it
+set_wait_policy()
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 SHARED_DATA = Path(
     os.environ.get(

@@ -69,6 +69,23 @@ def test_register_arrays_gives_the_cli_transform(tmp_path):
     assert np.allclose(read_transform(out), from_files.T_tgt_src)
 
 
+def test_workers_give_the_transform_of_one_thread_and_a_worker_may_register():
+    src = _cube()
+    tgt, _ = _moved(src)
+    settings = {"seed": 2, "max_points": 2000}
+    one = byoc_cli.Registrar(threads=1).register(src, tgt, **settings)
+    registrar = byoc_cli.Registrar(threads=2)
+    two = registrar.register(src, tgt, **settings)
+    # called from one of its own workers, register runs in place instead of waiting on itself
+    job = registrar.executor().submit(registrar.register, src, tgt, **settings)
+    inside = job.result(timeout=600)
+    assert np.array_equal(one.T_tgt_src, two.T_tgt_src)
+    assert np.array_equal(one.T_tgt_src, inside.T_tgt_src)
+    assert two.timings.keys() >= {"load", "features_src", "prepare_tgt", "refine", "total"}
+    with pytest.raises(ValueError, match="threads"):
+        byoc_cli.Registrar(threads=0)
+
+
 def test_fpfh_registration_recovers_a_known_motion():
     src = _cube(1)
     tgt, T = _moved(src)

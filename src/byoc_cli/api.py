@@ -8,15 +8,26 @@ built on them. Results are NamedTuples of numpy arrays and numbers. Errors are t
 errors of :mod:`byoc_cli.errors`.
 
 torch and the encoder are imported when a function is first called, not on import.
+
+Threads: importing this module before torch is imported applies the tool's thread policy
+(:mod:`byoc_cli.threads`): it puts ``OMP_WAIT_POLICY=PASSIVE`` and ``OMP_NUM_THREADS`` (the
+cores the process may use: affinity and cgroup quota) into ``os.environ`` unless they are
+set, so that torch starts with them. When torch is already imported nothing is changed.
+A :class:`Registrar` runs its work on ``threads`` worker threads (default: torch's thread
+count) with one torch thread each: the two clouds of a pair are read, encoded and
+prepared side by side, and :meth:`Registrar.executor` lets callers run pairs side by side.
 """
 
 from __future__ import annotations
 
 import os
+import sys
+import threading
 import time
 import warnings
 from collections import OrderedDict
 from collections.abc import Mapping
+from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,6 +43,10 @@ from byoc_cli.api_types import (
     load_cloud,
     load_weights,
 )
+from byoc_cli.threads import apply_thread_policy, in_worker
+
+if "torch" not in sys.modules:  # only before torch: OpenMP reads its settings when loaded
+    apply_thread_policy()
 
 __all__ = [
     "DEPTH_EXTENSIONS",
@@ -57,10 +72,12 @@ class Registrar:
             points; None: the features' own voxel (the weights' voxel size for byoc, 5 cm for
             fpfh), with the unit check of :func:`load_cloud`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
+        threads: worker threads, each running torch single-threaded (default: torch's
+            thread count, which the tool's thread policy sets to the usable cores).
 
     Raises:
         WeightsError: the weights cannot be loaded.
-        ValueError: an unknown ``features`` name.
+        ValueError: an unknown ``features`` name, ``threads`` below 1.
     """
 
     def __init__(
@@ -69,13 +86,21 @@ class Registrar:
         weights: str | os.PathLike[str] | LoadedWeights | None = None,
         voxel_size: float | str | None = "auto",
         device: str = "auto",
+        threads: int | None = None,
     ) -> None:
+        import torch
+
         from byoc_cli.pipeline.register import FEATURE_DEFAULTS
 
         if features not in FEATURE_DEFAULTS:
             raise ValueError(
                 f"features must be one of {sorted(FEATURE_DEFAULTS)}, got {features!r}"
             )
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be at least 1, got {threads}")
+        self.threads = threads or torch.get_num_threads()
+        self._executor = None
+        self._lock = threading.Lock()
         self.features = features
         self.defaults: Mapping[str, Any] = FEATURE_DEFAULTS[features]
         self.device = _resolve_device(device)
@@ -95,22 +120,42 @@ class Registrar:
     #: clouds whose refinement levels are kept
     REFINE_CACHE = 8
 
+    def executor(self):
+        """The registrar's worker pool (:func:`byoc_cli.threads.worker_pool`, ``threads``
+        workers, one torch thread each), made on first use; submit independent work to it."""
+        from byoc_cli.threads import worker_pool
+
+        with self._lock:
+            if self._executor is None:
+                self._executor = worker_pool(self.threads)
+            return self._executor
+
     def _refine_cloud(self, feats: Features):
         """The :class:`~byoc_cli.pipeline.refine.RefineCloud` of ``feats.cloud`` (kept for
-        the ``REFINE_CACHE`` most recently used clouds)."""
+        the ``REFINE_CACHE`` most recently used clouds; its levels are built on use)."""
         from byoc_cli.pipeline.refine import RefineCloud
 
         key = id(feats.cloud)
-        hit = self._refine_clouds.get(key)
-        voxel = feats.refine_voxel or feats.voxel_size
-        if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == voxel:
-            self._refine_clouds.move_to_end(key)
-            return hit[1]
-        prepared = RefineCloud(feats.cloud, voxel)
-        self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: the id stays its
-        while len(self._refine_clouds) > self.REFINE_CACHE:
-            self._refine_clouds.popitem(last=False)
-        return prepared
+        with self._lock:
+            hit = self._refine_clouds.get(key)
+            voxel = feats.refine_voxel or feats.voxel_size
+            if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == voxel:
+                self._refine_clouds.move_to_end(key)
+                return hit[1]
+            prepared = RefineCloud(feats.cloud, voxel)
+            self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: id stays its
+            while len(self._refine_clouds) > self.REFINE_CACHE:
+                self._refine_clouds.popitem(last=False)
+            return prepared
+
+    def prepare_refinement(
+        self, feats: Features, source: bool, target: bool, levels: Any = None
+    ) -> None:
+        """Build the multiscale-refinement ``levels`` (default: all) of ``feats.cloud`` now,
+        as a source, a target or both (else :meth:`match` builds them); nothing without a
+        cloud. Threads may build different levels of one cloud at once."""
+        if feats.cloud is not None:
+            self._refine_cloud(feats).prepare(source=source, target=target, levels=levels)
 
     def _make_extractor(self, weights: Any, voxel_size: float | None):
         from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
@@ -353,35 +398,96 @@ class Registrar:
         """Read both clouds, extract their features and :meth:`match` them.
 
         ``source`` and ``target`` are arrays or files as for :meth:`extract`; ``settings`` are
-        :meth:`match`'s keywords. ``timings`` also hold ``load``, ``features_src``,
-        ``features_tgt`` and ``total``.
+        :meth:`match`'s keywords. The two clouds are read, encoded and prepared for the
+        refinement side by side on the workers. ``timings`` also hold ``load`` (both reads),
+        ``features_src``, ``features_tgt``, ``prepare_src``, ``prepare_tgt`` (multiscale
+        levels) and ``total`` (wall time).
         """
         start = time.perf_counter()
         load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
-        points_src, name_src = self.load(source, "source", scale, **load)
-        points_tgt, name_tgt = self.load(target, "target", scale, **load)
-        t_load = time.perf_counter()
-        choice = None
-        if self.auto_voxel:
-            choice = self.choose_voxel(points_src, points_tgt, labels=(name_src, name_tgt))
-        voxel = (None, None) if choice is None else (choice.voxel_size, choice.refine_voxel)
+        multiscale = (settings.get("refine") or self.defaults["refine"]) == "multiscale"
+        pool = _InPlace() if in_worker() else self.executor()
+        labels = ((source, "source"), (target, "target"))
+        read = [pool.submit(self._loaded, cloud, label, scale, load) for cloud, label in labels]
+        (points_src, name_src, size_src, t_src), (points_tgt, name_tgt, size_tgt, t_tgt) = (
+            job.result() for job in read
+        )
         t_scale = time.perf_counter()
-        src = self.extract_points(points_src, scale, name_src, *voxel)
-        t_src = time.perf_counter()
-        tgt = self.extract_points(points_tgt, scale, name_tgt, *voxel)
-        t_tgt = time.perf_counter()
-        result = self.match(src, tgt, **settings)
+        choice, voxel = None, (None, None)
+        if self.auto_voxel:
+            choice = self.voxel_for(size_src, size_tgt)
+            voxel = (choice.voxel_size, choice.refine_voxel)
+        t_choice = time.perf_counter() - t_scale
+        jobs = [
+            pool.submit(
+                self._prepared_features,
+                points,
+                name,
+                scale,
+                voxel,
+                multiscale and k == 0,
+                multiscale and k == 1,
+            )
+            for k, (points, name) in enumerate(((points_src, name_src), (points_tgt, name_tgt)))
+        ]
+        (src, f_src), (tgt, f_tgt) = (job.result() for job in jobs)
+        result = pool.submit(self.match, src, tgt, **settings).result()
         timings = {
-            "load": t_load - start,
-            "scale": t_scale - t_load,
-            "features_src": t_src - t_scale,
-            "features_tgt": t_tgt - t_src,
+            "load": t_src["load"] + t_tgt["load"],
+            "scale": t_src["scale"] + t_tgt["scale"] + t_choice,
+            "features_src": f_src["features"],
+            "features_tgt": f_tgt["features"],
+            "prepare_src": f_src["prepare"],
+            "prepare_tgt": f_tgt["prepare"],
             **result.timings,
             "total": time.perf_counter() - start,
         }
         return result._replace(
             timings=timings, voxel_choice=None if choice is None else choice.as_dict()
         )
+
+    def _loaded(
+        self, cloud: Any, label: str, scale: float | None, load: dict
+    ) -> tuple[np.ndarray, str, Any, dict[str, float]]:
+        """Read one cloud and (auto voxel) measure it: ``(points, name, CloudScale | None,
+        seconds of each step)``."""
+        start = time.perf_counter()
+        points, name = self.load(cloud, label, scale, **load)
+        loaded = time.perf_counter()
+        size = self.measure(points, name) if self.auto_voxel else None
+        return points, name, size, {"load": loaded - start, "scale": time.perf_counter() - loaded}
+
+    def _prepared_features(
+        self,
+        points: np.ndarray,
+        name: str,
+        scale: float | None,
+        voxel: tuple[float | None, float | None],
+        as_source: bool,
+        as_target: bool,
+    ) -> tuple[Features, dict[str, float]]:
+        """Extract one cloud's features at ``voxel`` (``(voxel_size, refine_voxel)``) and
+        prepare its refinement levels; the features and the seconds of each step."""
+        start = time.perf_counter()
+        feats = self.extract_points(points, scale, name, *voxel)
+        extracted = time.perf_counter()
+        if as_target:  # the finer (larger) levels to the next idle worker, the first here
+            self.executor().submit(self.prepare_refinement, feats, as_source, True, (2, 1))
+            self.prepare_refinement(feats, as_source, True, (0,))
+        elif as_source:
+            self.prepare_refinement(feats, True, False)
+        done = time.perf_counter()
+        return feats, {"features": extracted - start, "prepare": done - extracted}
+
+
+class _InPlace:
+    """:meth:`submit` runs the call at once (inside a worker, where waiting for the pool
+    could wait for oneself)."""
+
+    def submit(self, fn, *args: Any, **kwargs: Any) -> Future:
+        future: Future = Future()
+        future.set_result(fn(*args, **kwargs))
+        return future
 
 
 def _resolve_device(device: str) -> str:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from byoc_cli.cli.main import cli
@@ -92,6 +93,32 @@ def test_three_shards_give_the_outputs_of_one_run(runner, sample, tmp_path):
     assert len(names) == 10 and names == sorted(p.name for p in parts.glob("*.txt"))
     for name in names:
         assert (whole / name).read_bytes() == (parts / name).read_bytes()
+
+
+@pytest.mark.realdata
+def test_pairs_side_by_side_give_the_transforms_of_one_thread(
+    runner, sample, tmp_path, monkeypatch
+):
+    listing = _ten_pairs(sample, tmp_path)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # --threads writes it: restored after
+    before = torch.get_num_threads()
+    outputs = {}
+    try:
+        for count in ("1", "2"):
+            out = tmp_path / f"threads{count}"
+            args = ["--threads", count, "register-batch", str(listing), "--out-dir", str(out)]
+            res = runner.invoke(cli, [*args, *FAST])
+            assert res.exit_code in (0, 3), res.output
+            outputs[count] = {p.name: p.read_bytes() for p in out.glob("*.txt")}
+            summary = _summary(out / "summary.jsonl")
+            assert [s["index"] for s in summary] == list(range(10))  # in list order
+            encoded = [
+                s["timings_s"][k] > 0 for s in summary for k in ("features_src", "features_tgt")
+            ]
+            assert sum(encoded) == 5  # each fragment encoded once, also by two workers
+    finally:
+        torch.set_num_threads(before)
+    assert len(outputs["1"]) == 10 and outputs["1"] == outputs["2"]
 
 
 @pytest.mark.realdata

@@ -8,8 +8,11 @@ skips the pairs whose T file exists. One pair's failure is recorded and the othe
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from collections.abc import Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -49,21 +52,39 @@ class ShardType(click.ParamType):
 
 
 class FeatureCache:
-    """The features of the last ``size`` clouds used (least recently used goes first)."""
+    """The features of the last ``size`` clouds used (least recently used goes first).
+
+    Shared by the worker threads: a cloud asked for while another thread computes it is
+    waited for, not computed twice; a failed computation is not kept (each pair that asks
+    again gets the error again).
+    """
 
     def __init__(self, size: int) -> None:
         self.size = size
-        self._items: OrderedDict[Any, Any] = OrderedDict()
+        self._items: OrderedDict[Any, Future] = OrderedDict()
+        self._lock = threading.Lock()
 
     def get(self, key: Any, compute) -> tuple[Any, bool]:
         """``(features, was_cached)``; ``compute()`` makes them on a miss."""
-        if key in self._items:
-            self._items.move_to_end(key)
-            return self._items[key], True
-        value = compute()
-        self._items[key] = value
-        if len(self._items) > self.size:
-            self._items.popitem(last=False)
+        with self._lock:
+            future = self._items.get(key)
+            if future is not None:
+                self._items.move_to_end(key)
+            else:
+                self._items[key] = mine = Future()
+                if len(self._items) > self.size:
+                    self._items.popitem(last=False)
+        if future is not None:
+            return future.result(), True
+        try:
+            value = compute()
+        except BaseException as exc:
+            mine.set_exception(exc)
+            with self._lock:
+                if self._items.get(key) is mine:
+                    del self._items[key]
+            raise
+        mine.set_result(value)
         return value, False
 
 
@@ -181,6 +202,7 @@ def register_batch(
         raise
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
+    started = time.perf_counter()
     with _Summary(summary) as lines:
         for entry, output in skipped:
             lines.write(_record(entry, output, SKIPPED))
@@ -200,16 +222,18 @@ def register_batch(
                 inputs,
             )
             with _Progress(len(todo)) as progress:
-                for entry, output in todo:
-                    record = run(entry, output)
+                for (entry, output), done in zip(todo, run.in_order(todo), strict=True):
+                    record = run.finish(entry, output, done)
                     counts[record["status"]] += 1
                     lines.write(record)
                     progress.advance(f"{counts[FAILED]} failed")
                     if record["status"] == FAILED:
                         click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
+    seconds = time.perf_counter() - started
     click.echo(
         f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
-        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}",
+        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}; "
+        f"{len(todo)} pairs in {seconds:.1f} s ({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
         err=True,
     )
     if counts[FAILED]:
@@ -230,12 +254,56 @@ def _record(entry, output: Path, status: str, error: str | None = None) -> dict:
 
 
 class _PairRunner:
-    """Registers one pair with the shared registrar and feature cache; never raises for a
-    bad pair (its record says why)."""
+    """Registers pairs with the shared registrar and feature cache, on the registrar's worker
+    threads (:meth:`in_order`), and writes each pair's T file (:meth:`finish`, in the
+    calling thread, in list order); never raises for a bad pair (its record says why)."""
+
+    #: pairs submitted ahead of the one being written, per worker thread
+    AHEAD = 2
 
     def __init__(self, registrar, cache, settings, load, min_confidence, inputs) -> None:
         self.registrar, self.cache, self.settings = registrar, cache, settings
         self.load, self.min_confidence, self.inputs = load, min_confidence, inputs
+
+    def in_order(self, todo) -> Iterator[tuple[Any, float]]:
+        """:meth:`compute` of every ``(entry, output)`` of ``todo``, run side by side on the
+        registrar's workers (at most ``AHEAD`` per worker in flight, so a killed run loses
+        only those), yielded in list order."""
+        pool = self.registrar.executor()
+        window = self.AHEAD * self.registrar.threads
+        pending: deque[Future] = deque()
+        try:
+            for entry, _ in todo:
+                pending.append(pool.submit(self.compute, entry))
+                if len(pending) >= window:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:  # interrupted: the pairs not started yet are dropped
+            for future in pending:
+                future.cancel()
+
+    def compute(self, entry) -> tuple[Any, float]:
+        """``(registration or the exception, seconds)`` of one pair."""
+        started = time.perf_counter()
+        timings: dict[str, float] = {}
+        try:
+            cloud_src = self._cloud(entry.source, "source", timings)
+            cloud_tgt = self._cloud(entry.target, "target", timings)
+            choice, voxel = None, (None, None)
+            if self.registrar.auto_voxel:
+                choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
+                voxel = (choice.voxel_size, choice.refine_voxel)
+            src = self._features(cloud_src, entry.source, voxel, timings, "features_src")
+            tgt = self._features(cloud_tgt, entry.target, voxel, timings, "features_tgt")
+            result = self.registrar.match(src, tgt, **self.settings)
+            result = result._replace(
+                timings={**timings, **result.timings},
+                voxel_choice=None if choice is None else choice.as_dict(),
+            )
+        except Exception as exc:  # one bad pair must not stop the others
+            result = exc
+        return result, time.perf_counter() - started
 
     def _cloud(self, path: Path, label: str, timings: dict):
         """``(points, name, CloudScale | None)`` of a file, read (and measured for an auto
@@ -266,26 +334,15 @@ class _PairRunner:
         timings[stage] = 0.0 if cached else time.perf_counter() - start
         return feats
 
-    def __call__(self, entry, output: Path) -> dict:
+    def finish(self, entry, output: Path, computed: tuple[Any, float]) -> dict:
+        """Write the T file of a :meth:`compute` result; the pair's summary record."""
         from byoc_cli.io import atomic_write_text, format_transform
         from byoc_cli.io.outputs import OutputSet
 
-        started = time.perf_counter()
-        timings: dict[str, float] = {}
+        result, seconds = computed
         try:
-            cloud_src = self._cloud(entry.source, "source", timings)
-            cloud_tgt = self._cloud(entry.target, "target", timings)
-            choice, voxel = None, (None, None)
-            if self.registrar.auto_voxel:
-                choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
-                voxel = (choice.voxel_size, choice.refine_voxel)
-            src = self._features(cloud_src, entry.source, voxel, timings, "features_src")
-            tgt = self._features(cloud_tgt, entry.target, voxel, timings, "features_tgt")
-            result = self.registrar.match(src, tgt, **self.settings)
-            result = result._replace(
-                timings={**timings, **result.timings},
-                voxel_choice=None if choice is None else choice.as_dict(),
-            )
+            if isinstance(result, Exception):
+                raise result
             policy = OutputSet(self.inputs)
             policy.claim(output)
             with policy:  # the T file appears complete, or not at all
@@ -303,9 +360,10 @@ class _PairRunner:
             self.min_confidence,
             self.load["scale"],
             self.registrar.device,
-            started,
+            time.perf_counter(),
         )
-        report["timings_s"]["pair"] = report["timings_s"].pop("command")
+        del report["timings_s"]["command"]
+        report["timings_s"]["pair"] = seconds
         return {**_record(entry, output, OK if passed else LOW_CONFIDENCE), **report}
 
 

@@ -8,6 +8,10 @@ import click
 
 from byoc_cli import __version__
 from byoc_cli.cli.options import verbosity_options
+from byoc_cli.threads import apply_thread_policy, set_wait_policy
+
+# OpenMP reads its wait policy once, when torch first loads it: before any command runs
+set_wait_policy()
 
 # subcommand name -> (module, attribute); imported only when the command runs or --help asks
 _COMMANDS = {
@@ -42,8 +46,25 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(module), attr)
 
 
+def _thread_policy(ctx: click.Context, param: click.Parameter, threads: int | None) -> None:
+    """``--threads``: the thread policy of :mod:`byoc_cli.threads`, before any command."""
+    apply_thread_policy(threads)
+
+
+threads_option = click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    expose_value=False,
+    callback=_thread_policy,
+    help="Threads for the numeric work [default: OMP_NUM_THREADS, else the cores this "
+    "process may use: CPU affinity and cgroup quota]. Idle threads sleep "
+    "(OMP_WAIT_POLICY=PASSIVE unless set).",
+)
+
+
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="byoc")
+@threads_option
 @verbosity_options
 def cli() -> None:
     """Register point clouds with features learned from raw RGB-D video (BYOC).

@@ -313,9 +313,12 @@ def _run(
     )
     progress = StageProgress(quiet)
     try:
+        import torch
+
         result = register_scans(
-            points, extractor, register_config, config, [str(p) for p in scans], progress
-        )
+            points, extractor, register_config, config, [str(p) for p in scans], progress,
+            workers=torch.get_num_threads(),  # byoc --threads: pairs side by side
+        )  # fmt: skip
     finally:
         progress.close()
     unit = 1.0 / (scale or 1.0)
@@ -358,6 +361,7 @@ def _run(
         },
         "weights": weights_info,
         "timings_s": {"load": load_time, **result.timings},
+        "pairs_per_s": len(result.pairs) / max(result.timings["pairs"], 1e-9),
     }
     merged_points = None
     if merged is not None:

@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+import threading
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -96,7 +97,7 @@ class RefineCloud:
     As a source a level is its voxel averages (every s-th one, at most
     ``MAX_SOURCE_POINTS``); as a target, its voxel averages, their unit normals and a cell
     index over them. Each is built once and kept: ``register-batch`` refines every
-    fragment in several pairs.
+    fragment in several pairs. Safe to share between threads (a level is built once).
 
     Args:
         points: ``(N, 3)`` points (metres), a tensor or an array.
@@ -112,28 +113,44 @@ class RefineCloud:
         self._averages: dict[int, torch.Tensor] = {}
         self._sources: dict[int, torch.Tensor] = {}
         self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
+        # one lock per level: levels are built side by side, each once
+        self._locks = [threading.RLock() for _ in self.levels]
 
     def _average(self, level: int) -> torch.Tensor:
-        if level not in self._averages:
-            self._averages[level] = voxel_average(self.points, self.levels[level][0])
-        return self._averages[level]
+        with self._locks[level]:
+            if level not in self._averages:
+                self._averages[level] = voxel_average(self.points, self.levels[level][0])
+            return self._averages[level]
 
     def source(self, level: int) -> torch.Tensor:
         """``(K, 3)`` source points of ``level``."""
-        if level not in self._sources:
-            p = self._average(level)
-            self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
-        return self._sources[level]
+        with self._locks[level]:
+            if level not in self._sources:
+                p = self._average(level)
+                self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
+            return self._sources[level]
 
     def target(self, level: int) -> tuple[torch.Tensor, torch.Tensor, CellIndex]:
         """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and a
         :class:`CellIndex` over them at the level's voxel."""
-        if level not in self._targets:
-            size, _, radius = self.levels[level]
-            q = self._average(level)
-            n = surface_normals(q, NORMAL_CELL * radius)
-            self._targets[level] = (q, n, CellIndex(q, size))
-        return self._targets[level]
+        with self._locks[level]:
+            if level not in self._targets:
+                size, _, radius = self.levels[level]
+                q = self._average(level)
+                n = surface_normals(q, NORMAL_CELL * radius)
+                self._targets[level] = (q, n, CellIndex(q, size))
+            return self._targets[level]
+
+    def prepare(
+        self, source: bool = True, target: bool = True, levels: Sequence[int] | None = None
+    ) -> RefineCloud:
+        """Build ``levels`` (default: all) now, as a source, a target or both; ``self``."""
+        for level in range(len(self.levels)) if levels is None else levels:
+            if source:
+                self.source(level)
+            if target:
+                self.target(level)
+        return self
 
 
 def refine_multiscale(
@@ -212,6 +229,9 @@ def _prepared(points, voxel_size: float) -> RefineCloud:
 def _threads(count: int) -> Iterator[None]:
     """Run the block with ``count`` torch threads."""
     before = torch.get_num_threads()
+    if before == count:  # (a worker of byoc_cli.threads.worker_pool runs one already)
+        yield
+        return
     torch.set_num_threads(count)
     try:
         yield

@@ -33,6 +33,7 @@ from byoc_cli.errors import RegistrationError, ShapeError, require_open3d
 from byoc_cli.pipeline import posegraph
 from byoc_cli.pipeline.features import FeatureExtractor
 from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
+from byoc_cli.threads import worker_pool
 
 
 @dataclass(frozen=True)
@@ -253,6 +254,7 @@ def register_scans(
     config: ScansConfig | None = None,
     labels: Sequence[str] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    workers: int = 1,
 ) -> ScansResult:
     """Register ``points`` (a list of ``(N_k, 3)`` clouds in metres) into cloud 0's frame.
 
@@ -263,6 +265,9 @@ def register_scans(
         config: settings of the pairs and the pose graph.
         labels: how errors name each cloud (its file name in the CLI).
         progress: called as ``progress(stage, done, total)``.
+        workers: threads that encode and prepare clouds and register pairs side by side,
+            one torch thread each (:func:`byoc_cli.threads.worker_pool`); the results do
+            not depend on it.
 
     Returns:
         :class:`ScansResult`.
@@ -277,33 +282,55 @@ def register_scans(
     labels = list(labels) if labels is not None else [f"cloud {k}" for k in range(len(points))]
     if len(points) < 2:
         raise ShapeError(f"need at least 2 clouds, got {len(points)}")
-    num = len(points)
     timings = {"features": 0.0, "prepare": 0.0, "pairs": 0.0, "pose_graph": 0.0}
     arrays = [np.asarray(cloud, dtype=np.float64) for cloud in points]
     for k, cloud in enumerate(arrays):
         if cloud.ndim != 2 or cloud.shape[1] != 3:
             raise ShapeError(f"{labels[k]}: points must be (N, 3), got {cloud.shape}")
-    feats, clouds = [], []
-    for k, cloud in enumerate(arrays):
+    pool = worker_pool(workers)
+    try:
+        return _register_all(
+            arrays, extractor, register_config, config, labels, report, timings, pool
+        )
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _register_all(arrays, extractor, register_config, config, labels, report, timings, pool):
+    """:func:`register_scans` once its inputs are checked, on the worker ``pool``."""
+    num = len(arrays)
+
+    def prepare(k: int):
         start = time.perf_counter()
-        feats.append(extractor(torch.from_numpy(cloud), label=labels[k]))
+        feats = extractor(torch.from_numpy(arrays[k]), label=labels[k])
         mid = time.perf_counter()
-        clouds.append(posegraph.prepare_cloud(cloud, config.icp_voxel))
-        timings["features"] += mid - start
-        timings["prepare"] += time.perf_counter() - mid
+        cloud = posegraph.prepare_cloud(arrays[k], config.icp_voxel)
+        return feats, cloud, mid - start, time.perf_counter() - mid
+
+    feats, clouds = [], []
+    for k, (f, cloud, t_features, t_prepare) in enumerate(pool.map(prepare, range(num))):
+        feats.append(f)
+        clouds.append(cloud)
+        timings["features"] += t_features
+        timings["prepare"] += t_prepare
         report("features", k + 1, num)
+
+    def pair(job: tuple[int, int, str, np.ndarray | None]) -> PairRecord:
+        i, j, kind, prior = job
+        return _register_pair(
+            feats, clouds, i, j, kind, register_config, extractor.voxel_size,
+            config.min_fitness, prior,
+        )  # fmt: skip
 
     def run(todo: list[tuple[int, int]], kind: str, poses=None) -> list[PairRecord]:
         done = []
         start = time.perf_counter()
-        for n, (i, j) in enumerate(todo):
-            prior = None if poses is None else np.linalg.inv(poses[i]) @ poses[j]
-            done.append(
-                _register_pair(
-                    feats, clouds, i, j, kind, register_config, extractor.voxel_size,
-                    config.min_fitness, prior,
-                )
-            )  # fmt: skip
+        jobs = [
+            (i, j, kind, None if poses is None else np.linalg.inv(poses[i]) @ poses[j])
+            for i, j in todo
+        ]
+        for n, record in enumerate(pool.map(pair, jobs)):
+            done.append(record)
             report(f"{kind} pairs", n + 1, len(todo))
         timings["pairs"] += time.perf_counter() - start
         return done
