@@ -430,7 +430,7 @@ def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights,
     figures = (
         f"confidence {report['confidence']:.3f}, {report['num_inliers']}/"
         f"{report['num_correspondences']} inliers within "
-        f"{100 * report['inlier_threshold_m']:.1f} cm, voxel 0.025 m, "
+        f"{100 * report['inlier_threshold_m']:.1f} cm, voxel {report['voxel_size_m']:g} m, "
     )
     assert figures in lines[0] and lines[0].endswith(" s")
     assert res.stdout == ""
