@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import time
 from pathlib import Path
@@ -78,9 +77,12 @@ class StageProgress:
 
 
 def _is_scans_folder(folder: Path) -> bool:
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import read_json_input
+
     try:
-        report = json.loads((folder / "report.json").read_text())
-    except (OSError, ValueError):
+        report = read_json_input(folder / "report.json")
+    except InputError:
         return False
     return isinstance(report, dict) and report.get("command") == REPORT_COMMAND
 

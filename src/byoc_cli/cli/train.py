@@ -32,11 +32,12 @@ log = logging.getLogger("byoc")
 
 def is_run_folder(folder: Path) -> bool:
     """True when ``folder`` holds the ``config.json`` byoc writes into a run folder."""
-    import json
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import read_json_input
 
     try:
-        doc = json.loads((folder / "config.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        doc = read_json_input(folder / "config.json", "config")
+    except InputError:
         return False
     return isinstance(doc, dict) and "byoc_cli_version" in doc and "config" in doc
 

@@ -151,7 +151,7 @@ def read_intrinsics(path: str | os.PathLike[str]) -> Intrinsics:
             than ``[0, 0, 1]``, non-positive focal lengths; the message names the file.
     """
     path = Path(path)
-    text = _read_text(path)
+    text = _read_text(path, "intrinsics")
     if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
         return _intrinsics_from_json(text, path)
     return _intrinsics_from_text(text, path)
@@ -241,7 +241,7 @@ def read_depth_image(path: str | os.PathLike[str], depth_scale: float) -> np.nda
 
     depth_scale = _check_depth_scale(depth_scale)
     path = Path(path)
-    with _open_input(path) as f:
+    with _open_input(path, "image") as f:
         try:
             with Image.open(f) as image:
                 mode = image.mode

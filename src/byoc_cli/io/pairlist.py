@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from byoc_cli.errors import InputError
+from byoc_cli.io.inputs import read_input
 
 __all__ = ["PairEntry", "default_output_name", "read_pair_list", "shard"]
 
@@ -45,16 +46,14 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
             fewer than 2 or more than 3 columns, or no pair at all.
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a pair list")
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = read_input(path, "pair list").decode("utf-8")
     except UnicodeDecodeError as exc:
         raise InputError(
             path, "is not a UTF-8 text file of 'source target [output]' lines"
         ) from exc
-    except IsADirectoryError as exc:
-        raise InputError(path, "is a folder, not a pair list") from exc
-    except OSError as exc:
-        raise InputError(path, exc.strerror or str(exc)) from exc
     folder = path.parent
     pairs: list[PairEntry] = []
     for number, raw in enumerate(text.splitlines(), start=1):

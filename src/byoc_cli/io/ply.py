@@ -18,6 +18,7 @@ import plyfile
 
 from byoc_cli.errors import InputError, ShapeError
 from byoc_cli.io.atomic import atomic_write, write_errors
+from byoc_cli.io.inputs import MAX_CLOUD_POINTS, check_point_count
 
 __all__ = ["read_ply_general", "read_ply_points", "write_ply"]
 
@@ -45,10 +46,11 @@ def _is_list(prop: plyfile.PlyProperty) -> bool:
     return isinstance(prop, plyfile.PlyListProperty)
 
 
-def read_ply_general(path: Path) -> np.ndarray:
-    """General but slow path (list properties before or inside the vertex element)."""
+def read_ply_general(f: BinaryIO, path: Path) -> np.ndarray:
+    """General but slow path (list properties before or inside the vertex element) on the
+    PLY file open as ``f`` (at its start)."""
     try:
-        data = plyfile.PlyData.read(str(path), mmap=False)
+        data = plyfile.PlyData.read(f, mmap=False)
         vertex = data["vertex"].data
         return np.stack([vertex[k].astype(np.float64) for k in "xyz"], axis=1)
     except plyfile.PlyElementParseError as exc:
@@ -72,6 +74,7 @@ def _read_ply_binary(
         raise InputError(
             path, f"truncated PLY file (header says {count} vertices, data holds {found})"
         )
+    check_point_count(count, path)
     out = np.empty((count, 3), dtype=np.float64)
     chunk = min(count, _CHUNK_ROWS)
     buf = bytearray(chunk * dtype.itemsize)
@@ -101,6 +104,8 @@ def _read_ply_ascii(
     names = [p.name for p in vertex.properties]
     cols = tuple(names.index(k) for k in "xyz")
     rows = min(vertex.count, available // (_ASCII_PROPERTY_BYTES * len(names)) + 1)
+    if rows > MAX_CLOUD_POINTS:  # the file may hold them: refuse before reading
+        check_point_count(vertex.count, path)
     try:
         with warnings.catch_warnings():  # "input contained no data": reported below
             warnings.simplefilter("ignore", UserWarning)
@@ -176,6 +181,7 @@ def read_ply_points(f: BinaryIO, path: Path) -> np.ndarray | None:
         skip = sum(el.count * el.dtype(header.byte_order).itemsize for el in before)
         return _read_ply_binary(f, path, vertex, header.byte_order, skip)
     _check_counts_fit(f, path, header)  # before plyfile allocates what the header claims
+    check_point_count(vertex.count, path)
     return None
 
 

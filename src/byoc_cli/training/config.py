@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from byoc_cli.errors import InputError
+from byoc_cli.io.inputs import read_input
 
 VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed")
 #: variants with a visual branch (need colour images)
@@ -284,10 +285,8 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as exc:
-        raise InputError(path, "no such file") from exc
-    except (OSError, UnicodeDecodeError) as exc:
+        raw = tomllib.loads(read_input(path, "config").decode("utf-8"))
+    except UnicodeDecodeError as exc:
         raise InputError(path, f"cannot read ({exc})") from exc
     except tomllib.TOMLDecodeError as exc:
         raise InputError(path, f"not valid TOML ({exc})") from exc
@@ -326,11 +325,13 @@ def config_from_json(path: str | Path) -> TrainConfig:
         InputError: missing or malformed file.
     """
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file (not a run folder?)")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as exc:
-        raise InputError(path, "no such file (not a run folder?)") from exc
-    except (OSError, json.JSONDecodeError) as exc:
+        data = json.loads(read_input(path, "config"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(path, f"cannot read run config ({exc})") from exc
+    if not isinstance(data, dict):
+        raise InputError(path, "cannot read run config (not a JSON object)")
     values = data.get("config", data)
     return TrainConfig(**check_keys(values, path))

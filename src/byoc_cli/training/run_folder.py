@@ -154,9 +154,11 @@ def _describe_initial_weights(config: TrainConfig) -> dict[str, Any]:
     import hashlib
 
     path = initial_weights_path(config)
+    from byoc_cli.io.inputs import read_input
+
     try:
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError:
+        digest = hashlib.sha256(read_input(path, "weights")).hexdigest()
+    except InputError:
         digest = None
     return {"file": config.init_weights, "sha256": digest}
 

@@ -31,6 +31,7 @@ import torch
 
 from byoc_cli.errors import DatasetError, InputError
 from byoc_cli.io.atomic import atomic_write_text
+from byoc_cli.io.inputs import read_json_input
 from byoc_cli.training.checkpoint import (
     capture_rng_state,
     load_latest_checkpoint,
@@ -125,7 +126,7 @@ def load_or_estimate_pairs(
         path = folder / f"{n:02d}-{sequence.name}.json"
         reused = _reusable(config, sequence, settings) if round_number == 1 else None
         if path.exists():
-            record = json.loads(path.read_text(encoding="utf-8"))
+            record = read_json_input(path)
         elif reused is not None:
             record = reused
             atomic_write_text(path, json.dumps(record, indent=1))
@@ -176,8 +177,10 @@ def _reusable(config: TrainConfig, sequence: Any, settings: PseudoPoseConfig) ->
         return None
     wanted = config_dict(settings)
     for path in sorted((Path(config.pairs_from) / PAIRS_DIR).glob("*.json")):
-        record = json.loads(path.read_text(encoding="utf-8"))
-        same_sequence = Path(record["sequence"]).resolve() == Path(sequence.root).resolve()
+        record = read_json_input(path)
+        if not isinstance(record, dict) or not {"sequence", "config"} <= record.keys():
+            raise InputError(path, "not a self-posed pairs record (pairs_from)")
+        same_sequence = Path(str(record["sequence"])).resolve() == Path(sequence.root).resolve()
         if same_sequence and record["config"] == wanted:
             return record
     return None

@@ -7,7 +7,6 @@ frames apart. Export: the encoder as a weights file, from a live run or from any
 from __future__ import annotations
 
 import itertools
-import json
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +14,7 @@ import numpy as np
 import torch
 
 from byoc_cli.training.config import TrainConfig
+from byoc_cli.training.plot import read_metrics
 from byoc_cli.training.pseudo_poses import frame_points
 
 #: feature-match recall of the validation (FCGF's protocol)
@@ -134,7 +134,7 @@ def export_checkpoint(
     metrics: dict[str, float] = {}
     metrics_path = Path(checkpoint).parents[1] / "metrics.jsonl"
     if metrics_path.exists():
-        records = [json.loads(line) for line in metrics_path.read_text().splitlines() if line]
+        records = read_metrics(metrics_path)
         vals = [r for r in records if r.get("kind") == "val" and r["step"] <= state["step"]]
         if vals:
             metrics = {
