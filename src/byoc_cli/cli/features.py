@@ -16,6 +16,8 @@ import click
 
 from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
+    DEPTH_SCALE,
+    SCALE,
     apply,
     device_option,
     features_option,
@@ -73,11 +75,14 @@ def _npz_bytes(feats) -> bytes:
 @apply(features_option, weights_option, voxel_size_option)
 @float_option(
     "--scale",
+    type=SCALE,
     help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
     "check. Points are written in metres.",
 )
 @path_option("--intrinsics", help="For a depth-image input: intrinsics JSON or 3x3 text.")
-@float_option("--depth-scale", default=1000.0, help="Depth-image units per metre.")
+@float_option(
+    "--depth-scale", type=DEPTH_SCALE, default=1000.0, help="Depth-image units per metre."
+)
 @device_option
 @handle_errors
 def features(

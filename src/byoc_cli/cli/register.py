@@ -11,6 +11,8 @@ import click
 
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
+    DEPTH_SCALE,
+    SCALE,
     apply,
     device_option,
     features_option,
@@ -69,6 +71,7 @@ register_options = apply(
     ),
     float_option(
         "--scale",
+        type=SCALE,
         help="Multiply input coordinates by this (0.001 for millimetres); disables the "
         "unit check. T is written in the input units.",
     ),
@@ -77,7 +80,10 @@ register_options = apply(
         help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.",
     ),
     float_option(
-        "--depth-scale", default=1000.0, help="Depth-image units per metre (1000 = mm, 5000 = TUM)."
+        "--depth-scale",
+        type=DEPTH_SCALE,
+        default=1000.0,
+        help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
     ),
     seed_option,
     device_option,

@@ -13,6 +13,8 @@ import click
 from byoc_cli.cli.display import is_quiet, progress_bar
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
+    SCALE,
+    VOXEL,
     apply,
     device_option,
     features_option,
@@ -164,12 +166,15 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
 )
 @apply(
     path_option("--merged", default=None, help="Write the merged model here (binary PLY)."),
-    float_option("--merged-voxel", default=0.01, help="Voxel size of the merged model, metres."),
+    float_option(
+        "--merged-voxel", type=VOXEL, default=0.01, help="Voxel size of the merged model, metres."
+    ),
     features_option,
     weights_option,
     voxel_size_option,
     float_option(
         "--icp-voxel",
+        type=VOXEL,
         default=0.02,
         help="Finest voxel of the multi-scale ICP refinement, metres (ICP at 4x, 2x, 1x).",
     ),
@@ -195,6 +200,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     ),
     float_option(
         "--scale",
+        type=SCALE,
         help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
         "check. Poses and the merged model are written in the input units.",
     ),

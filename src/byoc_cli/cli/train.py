@@ -15,8 +15,11 @@ import click
 from byoc_cli.cli.display import progress_bar
 from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
+    DEPTH_SCALE,
     DEVICES,
+    LEARNING_RATE,
     SEED,
+    VOXEL,
     apply,
     choice_option,
     float_option,
@@ -260,7 +263,7 @@ def _blame_file(
     "(fine-tuning; 'shipped': the weights that ship with byoc). Same --arch and --voxel-size.",
 )
 @apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[:2]))
-@float_option("--lr", help="Adam learning rate [default: 1e-4].")
+@float_option("--lr", type=LEARNING_RATE, help="Adam learning rate [default: 1e-4].")
 @click.option(
     "--seed",
     type=SEED,
@@ -272,9 +275,13 @@ def _blame_file(
     help="Where training runs: auto (cuda when available), cpu or cuda [default: auto].",
 )
 @apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[2:]))
-@float_option("--voxel-size", help="Voxel size in metres [default: 0.025].")
+@float_option("--voxel-size", type=VOXEL, help="Voxel size in metres [default: 0.025].")
 @path_option("--intrinsics", help="Intrinsics file for folders that ship none.")
-@float_option("--depth-scale", help="Depth units per metre [default: the layout's convention].")
+@float_option(
+    "--depth-scale",
+    type=DEPTH_SCALE,
+    help="Depth units per metre [default: the layout's convention].",
+)
 @apply(*(click.option(decls, default=None, help=text) for decls, text in _SWITCHES))
 @click.option("--quiet", is_flag=True, help="Plain log lines instead of a progress bar.")
 @click.pass_context

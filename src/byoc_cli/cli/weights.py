@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from byoc_cli.cli.errors import handle_errors
-from byoc_cli.cli.options import SEED, float_option, path_option
+from byoc_cli.cli.options import SEED, VOXEL, float_option, path_option
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 
 
@@ -45,7 +45,9 @@ def info(path: Path | None) -> None:
 @weights.command("init")
 @click.option("--arch", default="compact", show_default=True, help="Encoder architecture name.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seeds the initialisation.")
-@float_option("--voxel-size", default=0.025, help="Voxel size (m) recorded in the metadata.")
+@float_option(
+    "--voxel-size", type=VOXEL, default=0.025, help="Voxel size (m) recorded in the metadata."
+)
 @path_option("-o", "--output", required=True, help="The weights file to write.")
 @handle_errors
 def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:

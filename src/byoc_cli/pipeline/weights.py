@@ -18,6 +18,7 @@ from typing import Any, BinaryIO, NamedTuple
 
 import torch
 
+from byoc_cli import limits
 from byoc_cli.errors import WeightsError
 from byoc_cli.io.atomic import atomic_write_bytes
 from byoc_cli.io.inputs import SIZE_CAPS, open_input
@@ -45,7 +46,7 @@ _TRAINING_REQUIRED = {"variant": str, "steps": int, "seed": int, "metrics": dict
 #: metadata take kilobytes; a JSON document is parsed into objects many times its size.
 _MAX_HEADER_BYTES = 8 * 1024 * 1024
 #: Hard limits checked before anything is built from the metadata.
-MAX_VOXEL_SIZE = 10.0
+MAX_VOXEL_SIZE = limits.MAX_VOXEL_SIZE
 MAX_METRICS = 1000
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(EncoderConfig)}
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from byoc_cli import limits
 from byoc_cli.errors import InputError
 from byoc_cli.io.inputs import read_input
 
@@ -181,6 +182,7 @@ class TrainConfig:
         for name in ("lr", "adam_eps", "voxel_size", "temperature"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name} must be > 0, got {getattr(self, name)}")
+        problems += self._range_problems()
         if self.loss not in METRIC_LOSSES:
             problems.append(f"loss must be one of {', '.join(METRIC_LOSSES)}, got {self.loss!r}")
         if not 0 <= self.pos_margin < self.neg_margin <= 2:
@@ -194,6 +196,22 @@ class TrainConfig:
             problems.append(f"device must be auto, cpu or cuda, got {self.device!r}")
         if problems:
             raise ValueError("; ".join(problems))
+
+    def _range_problems(self) -> list[str]:
+        """The settings outside the ranges of :mod:`byoc_cli.limits` (the flags' ranges)."""
+        ranges = {
+            "lr": (0.0, limits.MAX_LR),
+            "voxel_size": (limits.MIN_VOXEL_SIZE, limits.MAX_VOXEL_SIZE),
+            "depth_scale": (limits.MIN_DEPTH_SCALE, limits.MAX_DEPTH_SCALE),
+        }
+        problems = []
+        for name, (low, high) in ranges.items():
+            value = getattr(self, name)
+            if value is None or (name != "depth_scale" and not value > 0):  # said above
+                continue
+            if not low <= value <= high:
+                problems.append(f"{name} must be in [{low:g}, {high:g}], got {value:g}")
+        return problems
 
     @property
     def uses_visual(self) -> bool:
