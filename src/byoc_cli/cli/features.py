@@ -27,7 +27,13 @@ from byoc_cli.cli.options import (
     voxel_size_option,
     weights_option,
 )
-from byoc_cli.cli.output import claim_outputs, write_json
+from byoc_cli.cli.output import (
+    check_binary_stdout,
+    claim_outputs,
+    is_stdout,
+    write_json,
+    write_stdout_bytes,
+)
 from byoc_cli.cli.register import check_depth_inputs, make_registrar
 
 log = logging.getLogger("byoc")
@@ -64,8 +70,9 @@ def _npz_bytes(feats) -> bytes:
     "-o",
     "--output",
     required=True,
-    help="The .npz file to write; with --npy, the stem of the .npy files (a trailing .npz "
-    "is dropped).",
+    dash=True,
+    help="The .npz file to write ('-' is stdout); with --npy, the stem of the .npy files "
+    "(a trailing .npz is dropped).",
 )
 @click.option(
     "--npy",
@@ -104,6 +111,11 @@ def features(
 
     device = resolve_device(device)
     check_depth_inputs((cloud,), intrinsics)
+    if npy and is_stdout(output):
+        raise click.BadParameter(
+            "--npy writes three files: give a stem, not '-'", param_hint="'-o'"
+        )
+    check_binary_stdout(output, "-o")
     if npy:
         stem = output.with_suffix("") if output.suffix == ".npz" else output
         names = {
@@ -133,6 +145,8 @@ def features(
                     "weights_sha256": feats.weights_sha256,
                 },
             )
+        elif is_stdout(output):
+            write_stdout_bytes(_npz_bytes(feats))
         else:
             atomic_write_bytes(output, _npz_bytes(feats))
     log.info(

@@ -33,6 +33,8 @@ log = logging.getLogger("byoc")
 
 #: what report.json says it is (a folder holding it is this command's own)
 REPORT_COMMAND = "byoc register-scans"
+#: the marker (``.byoc-register-scans``) that makes a folder this command's own from the start
+MARKER = "register-scans"
 
 
 def pairwise_setup(
@@ -79,9 +81,14 @@ class StageProgress:
 
 
 def _is_scans_folder(folder: Path) -> bool:
+    """A folder this command wrote (its report), or created (its marker: a run killed
+    before it wrote the report)."""
     from byoc_cli.errors import InputError
     from byoc_cli.io.inputs import read_json_input
+    from byoc_cli.io.outputs import is_marked
 
+    if is_marked(folder, MARKER):
+        return True
     try:
         report = read_json_input(folder / "report.json")
     except InputError:
@@ -105,20 +112,35 @@ def _load(path: Path, scale: float | None):
 
 
 @contextlib.contextmanager
-def _new_folders(*folders: Path):
-    """Create the missing ``folders``; remove the ones created (when empty) if the block fails."""
-    created = []
-    try:
-        for folder in folders:
-            if not folder.exists():
-                folder.mkdir()
-                created.append(folder)
-        yield
-    except BaseException:
-        for folder in reversed(created):
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-        raise
+def _results_folder(out: Path):
+    """Create ``out`` and ``out/poses`` and mark ``out`` as this command's own before anything
+    runs, so that a killed run leaves a folder the same command accepts; remove the stale
+    temporaries of a killed run. When the block fails, a folder that was new or empty is
+    left as it was (marker and folders removed)."""
+    from byoc_cli.io.outputs import mark_folder, new_folders, remove_stale_temporaries
+
+    was_empty = not out.exists() or not any(out.iterdir())
+    with new_folders(out, out / "poses"):
+        marker = mark_folder(out, MARKER)
+        for folder in (out, out / "poses"):
+            remove_stale_temporaries(folder)
+        try:
+            yield
+        except BaseException:
+            if was_empty:
+                marker.unlink(missing_ok=True)
+            raise
+
+
+def _stale_poses(poses_dir: Path, written: list[Path]) -> list[Path]:
+    """The pose files of an earlier run in ``poses_dir`` that this run does not write (a scan
+    no longer given, or no longer placed): poses/ holds exactly the last run's poses."""
+    keep = {path.name for path in written}
+    return sorted(
+        p
+        for p in poses_dir.glob("*.txt")
+        if p.name not in keep and p.is_file() and not p.is_symlink()
+    )
 
 
 def _pair_json(pair, poses, scans: list[Path]) -> dict:
@@ -250,8 +272,8 @@ def register_scans(
     from byoc_cli.io.outputs import check_run_folder
 
     check_run_folder(out, _is_scans_folder, what="register-scans folder")
-    with _new_folders(out, out / "poses"):
-        _run(
+    with _results_folder(out):
+        unplaced = _run(
             scans_list,
             out,
             merged,
@@ -269,6 +291,10 @@ def register_scans(
             quiet,
             started,
         )
+    if unplaced:
+        names = ", ".join(str(scans_list[k]) for k in unplaced[:5])
+        click.echo(f"byoc: {len(unplaced)} scan(s) not placed: {names}", err=True)
+        raise SystemExit(EXIT_LOW_CONFIDENCE)
 
 
 def _run(
@@ -288,7 +314,8 @@ def _run(
     device,
     quiet,
     started,
-) -> None:
+) -> list[int]:
+    """Register and write everything; returns the indices of the scans not placed."""
     from byoc_cli import __version__
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
     from byoc_cli.io.trajectory import format_trajectory_log
@@ -371,6 +398,8 @@ def _run(
         report["timings_s"]["merge"] = time.perf_counter() - t0
     report["timings_s"]["command"] = time.perf_counter() - started
 
+    for path in _stale_poses(out / "poses", [pose_paths[k] for k in placed]):
+        outputs.remove(path)
     with outputs:  # every file is committed at the end of the block, or none
         for k in placed:
             atomic_write_text(pose_paths[k], format_transform(poses[k]))
@@ -384,10 +413,7 @@ def _run(
             f"{out}: {len(placed)}/{len(scans)} scans placed, {len(kept)}/{len(result.pairs)} "
             f"pairs kept, {len(pruned)} edges pruned, {time.perf_counter() - started:.1f} s\n"
         )
-    if result.unplaced:
-        names = ", ".join(str(scans[k]) for k in result.unplaced[:5])
-        click.echo(f"byoc: {len(result.unplaced)} scan(s) not placed: {names}", err=True)
-        raise SystemExit(EXIT_LOW_CONFIDENCE)
+    return list(result.unplaced)
 
 
 def _unscaled(T, unit: float):

@@ -199,20 +199,21 @@ def _as_uint8_colors(colors: np.ndarray, n: int) -> np.ndarray:
 
 
 def write_ply(
-    path: str | os.PathLike[str],
+    path: str | os.PathLike[str] | None,
     points: np.ndarray,
     colors: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     *,
     dtype: type[np.floating] | str = np.float32,
-) -> None:
-    """Write a binary little-endian PLY file atomically.
+) -> bytes | None:
+    """Write a binary little-endian PLY file atomically (``path`` None: return its bytes).
 
     Vertex properties: ``x y z`` (``float`` or ``double``), then ``nx ny nz`` (same type)
     when ``normals`` are given, then ``red green blue`` (``uchar``) when ``colors`` are.
 
     Args:
-        path: the output file (replaced atomically; nothing is left on failure).
+        path: the output file (replaced atomically; nothing is left on failure), or None
+            for the file's bytes (standard output).
         points: ``(N, 3)`` coordinates (any real dtype; N may be 0).
         colors: optional ``(N, 3)`` uint8 (or integers in 0..255).
         normals: optional ``(N, 3)`` real.
@@ -249,5 +250,10 @@ def write_ply(
             vertex[k] = colors[:, j]
     element = plyfile.PlyElement.describe(vertex, "vertex")
     ply = plyfile.PlyData([element], text=False, byte_order="<")
+    if path is None:
+        buffer = io.BytesIO()
+        ply.write(buffer)
+        return buffer.getvalue()
     with atomic_write(path, "wb") as f, write_errors(path):
         ply.write(f)
+    return None

@@ -131,6 +131,22 @@ def save_weights(
 ) -> str:
     """Write ``encoder`` with ``metadata`` atomically; returns the file's SHA-256.
 
+    See :func:`weights_bytes` (what raises).
+    """
+    blob = weights_bytes(path, encoder, metadata, dtype=dtype)
+    atomic_write_bytes(path, blob)
+    return hashlib.sha256(blob).hexdigest()
+
+
+def weights_bytes(
+    path: str | Path,
+    encoder: GeometricEncoder,
+    metadata: dict[str, Any],
+    *,
+    dtype: torch.dtype = torch.float32,
+) -> bytes:
+    """The weights file of ``encoder`` with ``metadata`` (``path``: its name, for messages).
+
     ``dtype`` (float32 or float16) is the storage type of the floating-point tensors; the
     loader always builds a float32 encoder.
 
@@ -151,9 +167,7 @@ def save_weights(
     _check_finite(path, tensors)
     meta = dict(metadata)
     meta["tensors_sha256"] = tensors_sha256(tensors)
-    blob = save(tensors, metadata={METADATA_KEY: strict_dumps(meta, sort_keys=True)})
-    atomic_write_bytes(path, blob)
-    return hashlib.sha256(blob).hexdigest()
+    return save(tensors, metadata={METADATA_KEY: strict_dumps(meta, sort_keys=True)})
 
 
 def _read_header(path: Path, f: BinaryIO) -> dict[str, Any]:
