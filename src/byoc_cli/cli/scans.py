@@ -120,12 +120,13 @@ def _results_folder(out: Path):
     from byoc_cli.io.outputs import mark_folder, new_folders, remove_stale_temporaries
 
     was_empty = not out.exists() or not any(out.iterdir())
-    with new_folders(out, out / "poses"):
-        marker = mark_folder(out, MARKER)
-        for folder in (out, out / "poses"):
-            remove_stale_temporaries(folder)
+    with new_folders(out):
+        marker = mark_folder(out, MARKER)  # before anything else: an empty folder is ours too
         try:
-            yield
+            with new_folders(out / "poses"):
+                for folder in (out, out / "poses"):
+                    remove_stale_temporaries(folder)
+                yield
         except BaseException:
             if was_empty:
                 marker.unlink(missing_ok=True)
