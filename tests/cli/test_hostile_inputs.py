@@ -492,3 +492,35 @@ def test_case9_options_that_are_not_used_are_said_on_stderr(pair, tmp_path):
     result = _run("register", *pair, "--features", "fpfh", "--intrinsics", intrinsics)
     assert result.exit_code == 0, result.stderr
     assert f"--intrinsics {intrinsics} is not used: no input is a depth image" in result.stderr
+
+
+# ---------------------------------------------------------------------------- past the list
+
+
+def test_deeply_nested_json_and_toml_are_one_line_errors(pair, tmp_path):
+    """A header, metadata, intrinsics or config nested 200,000 levels deep used to end in a
+    RecursionError traceback."""
+    import struct
+
+    deep = "[" * 200_000 + "]" * 200_000
+    header = tmp_path / "header.safetensors"
+    header.write_bytes(struct.pack("<Q", len(deep)) + deep.encode())
+    meta = json.dumps({"__metadata__": {"byoc": deep}}).encode()
+    metadata = tmp_path / "meta.safetensors"
+    metadata.write_bytes(struct.pack("<Q", len(meta)) + meta)
+    for path, phrase in ((header, "header is not JSON"), (metadata, "metadata is not valid")):
+        line = _one_error_line(_run("weights", "info", path))
+        assert str(path) in line and phrase in line, line
+    config = tmp_path / "deep.toml"
+    config.write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    line = _one_error_line(_run("train", "--config", config, "--rgbd-dir", tmp_path))
+    assert str(config) in line and "nested too deeply" in line, line
+    intrinsics = tmp_path / "K.json"
+    intrinsics.write_text('{"intrinsic_matrix": ' + deep + "}")
+    depth = tmp_path / "d.png"
+    from PIL import Image
+
+    Image.fromarray(np.full((4, 4), 1000, np.uint16)).save(depth)
+    result = _run("register", depth, depth, "--features", "fpfh", "--intrinsics", intrinsics)
+    line = _one_error_line(result)
+    assert str(intrinsics) in line and "nested too deeply" in line, line

@@ -98,6 +98,8 @@ def _intrinsics_from_json(text: str, path: Path) -> Intrinsics:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+    except RecursionError as exc:
+        raise InputError(path, "not valid JSON (nested too deeply)") from exc
     if isinstance(data, dict) and "intrinsic_matrix" not in data and "intrinsic" in data:
         data = data["intrinsic"]  # Open3D PinholeCameraParameters
     if not isinstance(data, dict) or "intrinsic_matrix" not in data:

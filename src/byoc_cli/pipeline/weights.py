@@ -182,7 +182,7 @@ def _read_header(path: Path, f: BinaryIO) -> dict[str, Any]:
         raise WeightsError(path, "not a safetensors file (bad header length)")
     try:
         header = json.loads(f.read(header_len))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise WeightsError(path, "not a safetensors file (header is not JSON)") from exc
     if not isinstance(header, dict):
         raise WeightsError(path, "not a safetensors file (header is not an object)")
@@ -197,7 +197,7 @@ def _metadata(path: Path, header: dict[str, Any]) -> Any:
         raise WeightsError(path, "safetensors file has no byoc metadata (not a byoc weights file)")
     try:
         return json.loads(raw_meta)
-    except (TypeError, json.JSONDecodeError) as exc:
+    except (TypeError, json.JSONDecodeError, RecursionError) as exc:
         raise WeightsError(path, "byoc metadata is not valid JSON") from exc
 
 

@@ -308,6 +308,8 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
         raise InputError(path, f"cannot read ({exc})") from exc
     except tomllib.TOMLDecodeError as exc:
         raise InputError(path, f"not valid TOML ({exc})") from exc
+    except RecursionError as exc:
+        raise InputError(path, "not valid TOML (nested too deeply)") from exc
     if set(raw) == {"train"} and isinstance(raw["train"], dict):
         raw = raw["train"]
     return check_keys(raw, path)
@@ -347,8 +349,8 @@ def config_from_json(path: str | Path) -> TrainConfig:
         raise InputError(path, "no such file (not a run folder?)")
     try:
         data = json.loads(read_input(path, "config"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"cannot read run config ({exc})") from exc
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(path, f"cannot read run config ({type(exc).__name__})") from exc
     if not isinstance(data, dict):
         raise InputError(path, "cannot read run config (not a JSON object)")
     values = data.get("config", data)

@@ -75,6 +75,8 @@ def read_K(
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise error(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+        except RecursionError as exc:
+            raise error(path, "not valid JSON (nested too deeply)") from exc
         if isinstance(data, dict) and "intrinsic_matrix" not in data and "intrinsic" in data:
             data = data["intrinsic"]
         values = data.get("intrinsic_matrix") if isinstance(data, dict) else None
