@@ -46,6 +46,10 @@ class RegistrationError(ByocError):
     """Registration could not produce a transform (e.g. no correspondences)."""
 
 
+class TrainingError(ByocError):
+    """Training cannot go on: the loss or the weights became NaN or Inf (diverged)."""
+
+
 def require_open3d():
     """Import open3d lazily, with an install hint if that fails.
 

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from byoc_cli.errors import DependencyError, InputError, ShapeError, require_open3d
 from byoc_cli.io import SUPPORTED_EXTENSIONS, LoadedCloud, check_units, read_point_cloud, write_ply
-from byoc_cli.io import pointcloud as pc_module
+from byoc_cli.io import inputs as inputs_module
 
 
 @pytest.fixture
@@ -249,7 +249,7 @@ def test_file_system_errors(tmp_path, monkeypatch):
     def denied(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(pc_module, "open", denied, raising=False)
+    monkeypatch.setattr(inputs_module, "_open_fd", denied)
     assert _error(locked) == "permission denied"
 
 

@@ -363,7 +363,7 @@ def test_tum_intrinsics_from_folder_name_and_override(tmp_path):
         discover_sequences(unnamed, intrinsics=np.eye(4))
     with pytest.raises(InputError, match="transposed"):
         discover_sequences(unnamed, intrinsics=K.T)
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(InputError, match="no such file"):
         discover_sequences(unnamed, intrinsics=tmp_path / "missing.json")
 
 

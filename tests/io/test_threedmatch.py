@@ -189,7 +189,7 @@ def test_malformed_gt_log_names_file_and_line(tmp_path, text, line, phrase):
 
 
 def test_missing_and_binary_gt_log(tmp_path):
-    with pytest.raises(InputError, match="file not found"):
+    with pytest.raises(InputError, match="no such file"):
         read_gt_log(tmp_path / "gt.log")
     (tmp_path / "bin.log").write_bytes(b"\xff\xfe\x00\x81")
     with pytest.raises(InputError, match="not a text file"):

@@ -7,6 +7,7 @@ skips the pairs whose T file exists. One pair's failure is recorded and the othe
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -158,7 +159,7 @@ def register_batch(
     A rerun skips the pairs whose T file exists (--overwrite to redo them).
     """
     from byoc_cli.errors import InputError
-    from byoc_cli.io.outputs import OutputSet
+    from byoc_cli.io.outputs import OutputSet, new_folders
     from byoc_cli.io.pairlist import read_pair_list
     from byoc_cli.io.pairlist import shard as take_shard
 
@@ -183,9 +184,7 @@ def register_batch(
         summary = out_dir / name
     mine = {entry.index for entry, _ in planned}
     todo, skipped = [], []
-    made = not out_dir.exists()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    try:
+    with new_folders(out_dir):  # bad input leaves no folder behind (nor a parent made here)
         policy = OutputSet(inputs)
         policy.claim(summary)
         for entry, output in whole:
@@ -196,18 +195,17 @@ def register_batch(
                 skipped.append((entry, output))
             else:
                 todo.append((entry, output))
-    except Exception:
-        if made:  # bad input leaves nothing behind
-            out_dir.rmdir()
-        raise
+        # the weights are loaded before the summary is opened: unusable weights leave nothing
+        registrar = None
+        if todo:
+            registrar = make_registrar(options["features"], weights, options["voxel_size"], device)
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
     started = time.perf_counter()
     with _Summary(summary) as lines:
         for entry, output in skipped:
             lines.write(_record(entry, output, SKIPPED))
-        if todo:
-            registrar = make_registrar(options["features"], weights, options["voxel_size"], device)
+        if registrar is not None:
             settings = ("estimator", "refine", "max_points", "num_correspondences", "seed")
             run = _PairRunner(
                 registrar,
@@ -368,12 +366,14 @@ class _PairRunner:
 
 
 class _Summary:
-    """The JSON Lines summary, appended one flushed line at a time."""
+    """The JSON Lines summary, appended one flushed line at a time; a summary this run created
+    and left empty (it failed before a pair was done) is removed."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
 
     def __enter__(self) -> _Summary:
+        self.created = not self.path.exists()
         self.file = open(self.path, "a", encoding="utf-8")
         return self
 
@@ -383,8 +383,12 @@ class _Summary:
         self.file.write(strict_dumps(record) + "\n")
         self.file.flush()
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        empty = self.file.tell() == 0
         self.file.close()
+        if exc_type is not None and self.created and empty:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
 
 
 class _Progress:

@@ -12,6 +12,8 @@ import click
 
 from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.options import (
+    LENGTH,
+    VOXEL,
     apply,
     device_option,
     float_option,
@@ -129,9 +131,12 @@ eval_options = apply(
         "weights hash); a rerun reads them.",
     ),
     int_option("--limit", min=1, help="At most N pairs per scene / sequence (the first ones)."),
-    float_option("--fpfh-voxel-size", default=0.05, help="Voxel size (m) of the FPFH methods."),
+    float_option(
+        "--fpfh-voxel-size", type=VOXEL, default=0.05, help="Voxel size (m) of the FPFH methods."
+    ),
     float_option(
         "--icp-distance",
+        type=LENGTH,
         default=0.10,
         help="ICP's largest correspondence distance (m); ICP starts from the identity.",
     ),

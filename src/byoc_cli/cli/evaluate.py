@@ -22,7 +22,7 @@ from byoc_cli.cli.eval_options import (
     expand_method_args,
     method_notes,
 )
-from byoc_cli.cli.options import finite_float, float_option, int_option
+from byoc_cli.cli.options import DEPTH_SCALE, LENGTH, finite_float, float_option, int_option
 
 __all__ = ["DEFAULT_METHODS", "eval_fmr", "eval_pairs", "expand_method_args"]
 
@@ -62,7 +62,7 @@ __all__ = ["DEFAULT_METHODS", "eval_fmr", "eval_pairs", "expand_method_args"]
     default=5000,
     help="Points sampled per fragment for FMR and registration (0 = all).",
 )
-@float_option("--tau1", default=0.10, help="FMR inlier distance (m).")
+@float_option("--tau1", type=LENGTH, default=0.10, help="FMR inlier distance (m).")
 @float_option("--tau2", type=finite_float(0, 1), default=0.05, help="FMR inlier-ratio threshold.")
 @int_option(
     "--top-k",
@@ -192,6 +192,7 @@ def _fmr_notes(methods, pair_set, result) -> list[str]:
 )
 @float_option(
     "--depth-scale",
+    type=DEPTH_SCALE,
     help="Depth units per metre [default: the layout's, 5000 TUM, 1000 others].",
 )
 @eval_options

@@ -16,6 +16,8 @@ import click
 
 from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
+    DEPTH_SCALE,
+    SCALE,
     apply,
     device_option,
     features_option,
@@ -26,7 +28,13 @@ from byoc_cli.cli.options import (
     voxel_size_option,
     weights_option,
 )
-from byoc_cli.cli.output import claim_outputs, write_json
+from byoc_cli.cli.output import (
+    check_binary_stdout,
+    claim_outputs,
+    is_stdout,
+    write_json,
+    write_stdout_bytes,
+)
 from byoc_cli.cli.register import check_depth_inputs, make_registrar
 
 log = logging.getLogger("byoc")
@@ -63,8 +71,9 @@ def _npz_bytes(feats) -> bytes:
     "-o",
     "--output",
     required=True,
-    help="The .npz file to write; with --npy, the stem of the .npy files (a trailing .npz "
-    "is dropped).",
+    dash=True,
+    help="The .npz file to write ('-' is stdout); with --npy, the stem of the .npy files "
+    "(a trailing .npz is dropped).",
 )
 @click.option(
     "--npy",
@@ -74,11 +83,14 @@ def _npz_bytes(feats) -> bytes:
 @apply(features_option, weights_option, voxel_size_option)
 @float_option(
     "--scale",
+    type=SCALE,
     help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
     "check. Points are written in metres.",
 )
 @path_option("--intrinsics", help="For a depth-image input: intrinsics JSON or 3x3 text.")
-@float_option("--depth-scale", default=1000.0, help="Depth-image units per metre.")
+@float_option(
+    "--depth-scale", type=DEPTH_SCALE, default=1000.0, help="Depth-image units per metre."
+)
 @device_option
 @verbosity_options
 @handle_errors
@@ -101,6 +113,11 @@ def features(
 
     device = resolve_device(device)
     check_depth_inputs((cloud,), intrinsics)
+    if npy and is_stdout(output):
+        raise click.BadParameter(
+            "--npy writes three files: give a stem, not '-'", param_hint="'-o'"
+        )
+    check_binary_stdout(output, "-o")
     if npy:
         stem = output.with_suffix("") if output.suffix == ".npz" else output
         names = {
@@ -130,6 +147,8 @@ def features(
                     "weights_sha256": feats.weights_sha256,
                 },
             )
+        elif is_stdout(output):
+            write_stdout_bytes(_npz_bytes(feats))
         else:
             atomic_write_bytes(output, _npz_bytes(feats))
     log.info(

@@ -8,7 +8,13 @@ from pathlib import Path
 import click
 
 from byoc_cli.cli.errors import CliError, handle_errors
-from byoc_cli.cli.options import POSITIVE, finite_float, verbosity_options
+from byoc_cli.cli.options import (
+    DEPTH_SCALE,
+    LENGTH,
+    TSDF_VOXEL,
+    finite_float,
+    verbosity_options,
+)
 
 _PATH = click.Path(path_type=Path)
 
@@ -72,21 +78,21 @@ def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float |
 )
 @click.option(
     "--tsdf-voxel",
-    type=POSITIVE,
+    type=TSDF_VOXEL,
     default=0.006,
     show_default=True,
     help="TSDF voxel in metres (3DMatch: 6 mm).",
 )
 @click.option(
     "--sdf-trunc",
-    type=POSITIVE,
+    type=LENGTH,
     default=0.04,
     show_default=True,
     help="TSDF truncation distance in metres.",
 )
 @click.option(
     "--depth-trunc",
-    type=POSITIVE,
+    type=LENGTH,
     default=3.0,
     show_default=True,
     help="Ignore depth beyond this, metres.",
@@ -106,7 +112,7 @@ def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float |
 )
 @click.option(
     "--depth-scale",
-    type=POSITIVE,
+    type=DEPTH_SCALE,
     default=None,
     help="Depth units per metre [default: the layout's convention].",
 )

@@ -11,6 +11,10 @@ import click
 from byoc_cli.cli.display import print_table
 from byoc_cli.cli.errors import CliError, handle_errors
 from byoc_cli.cli.options import (
+    DEGREES,
+    DEPTH_SCALE,
+    LENGTH,
+    VOXEL,
     apply,
     device_option,
     features_option,
@@ -156,18 +160,23 @@ def _print_eval(report: dict, name: str) -> None:
     weights_option,
     fixed_voxel_size_option,
     float_option(
-        "--icp-voxel", default=0.025, help="Finest ICP voxel, metres (ICP at 4x, 2x, 1x)."
+        "--icp-voxel",
+        type=VOXEL,
+        default=0.025,
+        help="Finest ICP voxel, metres (ICP at 4x, 2x, 1x).",
     ),
-    float_option("--max-depth", default=4.0, help="Drop depth beyond this, metres."),
+    float_option("--max-depth", type=LENGTH, default=4.0, help="Drop depth beyond this, metres."),
     int_option("--frame-stride", min=1, default=1, help="Use every N-th frame."),
     int_option("--max-frames", default=0, help="Use at most this many frames (0 = all)."),
     float_option(
         "--keyframe-rotation",
+        type=DEGREES,
         default=10.0,
         help="New keyframe past this rotation from the current one, degrees.",
     ),
     float_option(
         "--keyframe-translation",
+        type=LENGTH,
         default=0.1,
         help="New keyframe past this translation from the current one, metres.",
     ),
@@ -183,7 +192,9 @@ def _print_eval(report: dict, name: str) -> None:
         help="Optimise a pose graph over the keyframes with loop edges (slower).",
     ),
     path_option("--intrinsics", help="Intrinsics file for a sequence that ships none."),
-    float_option("--depth-scale", help="Depth units per metre [default: the layout's]."),
+    float_option(
+        "--depth-scale", type=DEPTH_SCALE, help="Depth units per metre [default: the layout's]."
+    ),
     seed_option,
     device_option,
     verbose_option,

@@ -2,20 +2,27 @@
 
 Numbers: :class:`FiniteFloat` refuses ``nan`` and ``inf`` (click's ``FloatRange`` lets them
 through), :data:`SEED` is bounded to what a generator takes (0 to 2**64 - 1); both are usage
-errors (exit 2) naming the option. :func:`float_option`, :func:`int_option` and
-:func:`path_option` declare an option in one line. :data:`verbosity_options` gives a command
-the root group's ``-v``/``-q``, so that they work after the subcommand too.
+errors (exit 2) naming the option. Every float option takes one of the bounded kinds below
+(:data:`VOXEL`, :data:`LENGTH`, :data:`SCALE`, :data:`DEPTH_SCALE`, :data:`DEGREES`,
+:data:`LEARNING_RATE`; :data:`POSITIVE` otherwise), whose ranges are those of
+:mod:`byoc_cli.limits`. :func:`float_option`, :func:`int_option` and :func:`path_option`
+declare an option in one line; a file option refuses a name ending in ``/`` (a folder's).
+:data:`verbosity_options` gives a command the root group's ``-v``/``-q``, so that they work
+after the subcommand too.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import click
+
+from byoc_cli import limits
 
 #: Largest seed a ``torch.Generator`` takes.
 MAX_SEED = 2**64 - 1
@@ -42,12 +49,27 @@ def finite_float(
     return FiniteFloat(min=min, max=max, min_open=min_open, max_open=max_open)
 
 
-POSITIVE = finite_float(0, min_open=True)
+#: a voxel size in metres (features, ICP, merged model, FPFH)
+VOXEL = finite_float(limits.MIN_VOXEL_SIZE, limits.MAX_VOXEL_SIZE)
+#: a TSDF voxel in metres
+TSDF_VOXEL = finite_float(limits.MIN_TSDF_VOXEL, limits.MAX_TSDF_VOXEL)
+#: a distance, depth or truncation in metres
+LENGTH = finite_float(limits.MIN_LENGTH, limits.MAX_LENGTH)
+#: ``--scale``: input units to metres
+SCALE = finite_float(limits.MIN_SCALE, limits.MAX_SCALE)
+#: depth-image units per metre
+DEPTH_SCALE = finite_float(limits.MIN_DEPTH_SCALE, limits.MAX_DEPTH_SCALE)
+#: an angle in degrees, > 0
+DEGREES = finite_float(0, limits.MAX_DEGREES, min_open=True)
+#: Adam's learning rate
+LEARNING_RATE = finite_float(0, limits.MAX_LR, min_open=True)
+#: any other positive number
+POSITIVE = finite_float(limits.MIN_POSITIVE, limits.MAX_POSITIVE)
 SEED = click.IntRange(0, MAX_SEED)
 
 
-def float_option(*decls: str, type: click.ParamType = POSITIVE, **kwargs: Any) -> Callable:
-    """A float option (finite, > 0 unless ``type`` says otherwise)."""
+def float_option(*decls: str, type: click.ParamType, **kwargs: Any) -> Callable:
+    """A float option of a bounded kind (:data:`VOXEL`, :data:`LENGTH`, ...; always finite)."""
     kwargs.setdefault("show_default", kwargs.get("default") is not None)
     return click.option(*decls, type=type, **kwargs)
 
@@ -58,9 +80,27 @@ def int_option(*decls: str, min: int = 0, **kwargs: Any) -> Callable:
     return click.option(*decls, type=click.IntRange(min=min), **kwargs)
 
 
+class FilePath(click.Path):
+    """A file path (not a folder); a name ending in ``/`` is refused, as ``cp`` and ``touch``
+    refuse it: it names a folder, and ``Path`` would silently drop the slash."""
+
+    def __init__(self, allow_dash: bool = False) -> None:
+        super().__init__(dir_okay=False, path_type=Path, allow_dash=allow_dash)
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        text = os.fsdecode(value) if isinstance(value, bytes | os.PathLike) else value
+        if isinstance(text, str) and text.endswith(("/", os.sep)) and text != "-":
+            self.fail(f"{text!r} ends with '/' (a folder); give a file name.", param, ctx)
+        return super().convert(value, param, ctx)
+
+
 def path_option(*decls: str, file: bool = True, **kwargs: Any) -> Callable:
-    """A path option (``file=True``: a file, not a folder)."""
-    kind = click.Path(dir_okay=not file, path_type=Path, allow_dash=kwargs.pop("dash", False))
+    """A path option (``file=True``: a file, not a folder; ``dash=True``: ``-`` is stdio)."""
+    dash = kwargs.pop("dash", False)
+    if file:
+        kind: click.Path = FilePath(allow_dash=dash)
+    else:
+        kind = click.Path(path_type=Path, allow_dash=dash)
     return click.option(*decls, type=kind, **kwargs)
 
 
@@ -81,15 +121,20 @@ def apply(*options: Callable) -> Callable:
     return decorate
 
 
+#: an explicit ``--voxel-size`` of a command with ``auto``: in the units of the points,
+#: so any length a cloud may be in (millimetres included)
+VOXEL_ANY_UNIT = LENGTH
+
+
 class VoxelSize(click.ParamType):
-    """``auto`` or a finite number > 0."""
+    """``auto`` or a length (:data:`VOXEL_ANY_UNIT`)."""
 
     name = "auto|FLOAT"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
         if value is None or value == "auto":
             return value
-        return POSITIVE.convert(value, param, ctx)
+        return VOXEL_ANY_UNIT.convert(value, param, ctx)
 
 
 voxel_size_option = click.option(
@@ -106,6 +151,7 @@ voxel_size_option = click.option(
 #: ``--voxel-size`` of the commands that register a whole set with one voxel (no auto yet)
 fixed_voxel_size_option = float_option(
     "--voxel-size",
+    type=VOXEL,
     default=None,
     help="Voxel size in metres [default: the weights' voxel size (0.025) for byoc, 0.05 for fpfh].",
 )

@@ -19,7 +19,14 @@ from byoc_cli.cli.errors import StdoutError
 from byoc_cli.errors import InputError
 from byoc_cli.io.outputs import OutputSet, is_stdout
 
-__all__ = ["claim_outputs", "is_stdout", "write_json", "write_stdout"]
+__all__ = [
+    "check_binary_stdout",
+    "claim_outputs",
+    "is_stdout",
+    "write_json",
+    "write_stdout",
+    "write_stdout_bytes",
+]
 
 
 def write_stdout(text: str) -> None:
@@ -33,6 +40,37 @@ def write_stdout(text: str) -> None:
         raise StdoutError("cannot write to stdout: it is closed")
     try:
         stream.write(text)
+        stream.flush()
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise StdoutError(f"cannot write to stdout: {reason}") from exc
+
+
+def check_binary_stdout(path: Path | None, option: str) -> None:
+    """Refuse binary output to standard output (``option`` is ``-``) when stdout is a
+    terminal, where it would be garbage (gzip refuses the same way); call before the work.
+
+    Raises:
+        click.UsageError: naming ``option``.
+    """
+    if is_stdout(path) and sys.stdout is not None and sys.stdout.isatty():
+        raise click.UsageError(
+            f"{option} -: not writing binary data to a terminal; redirect stdout"
+        )
+
+
+def write_stdout_bytes(data: bytes) -> None:
+    """Write binary ``data`` to standard output and flush it.
+
+    Raises:
+        StdoutError: stdout is closed, full or a broken pipe.
+    """
+    stream = getattr(sys.stdout, "buffer", None)
+    if stream is None:
+        raise StdoutError("cannot write to stdout: it is closed or not binary")
+    try:
+        sys.stdout.flush()
+        stream.write(data)
         stream.flush()
     except (OSError, ValueError) as exc:
         reason = getattr(exc, "strerror", None) or str(exc)

@@ -12,6 +12,8 @@ import click
 from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
+    DEPTH_SCALE,
+    SCALE,
     apply,
     device_option,
     features_option,
@@ -25,7 +27,14 @@ from byoc_cli.cli.options import (
     voxel_size_option,
     weights_option,
 )
-from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
+from byoc_cli.cli.output import (
+    check_binary_stdout,
+    claim_outputs,
+    is_stdout,
+    write_json,
+    write_stdout,
+    write_stdout_bytes,
+)
 from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 log = logging.getLogger("byoc")
@@ -74,6 +83,7 @@ register_options = apply(
     ),
     float_option(
         "--scale",
+        type=SCALE,
         help="Multiply input coordinates by this (0.001 for millimetres); disables the "
         "unit check. T is written in the input units.",
     ),
@@ -82,7 +92,10 @@ register_options = apply(
         help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.",
     ),
     float_option(
-        "--depth-scale", default=1000.0, help="Depth-image units per metre (1000 = mm, 5000 = TUM)."
+        "--depth-scale",
+        type=DEPTH_SCALE,
+        default=1000.0,
+        help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
     ),
     seed_option,
     device_option,
@@ -101,6 +114,8 @@ def make_registrar(
     from byoc_cli.api import Registrar
     from byoc_cli.pipeline.default_weights import default_weights_path
 
+    if features == "fpfh" and weights is not None:
+        log.warning("--weights %s is not used: --features fpfh needs no weights", weights)
     if features == "byoc" and weights is None and default_weights_path() is None:
         raise click.UsageError(
             "--features byoc needs --weights PATH (this install ships no trained weights); "
@@ -123,12 +138,15 @@ def match_settings(
 
 
 def check_depth_inputs(paths, intrinsics: Path | None) -> None:
-    """A depth-image input without ``--intrinsics`` is a usage error."""
-    for path in paths:
-        if Path(path).suffix.lower() in DEPTH_EXTENSIONS and intrinsics is None:
-            raise click.BadParameter(
-                f"{path} is a depth image: --intrinsics is required", param_hint="'--intrinsics'"
-            )
+    """A depth-image input without ``--intrinsics`` is a usage error; ``--intrinsics`` without
+    a depth-image input is not used, and a warning says so."""
+    depth = [p for p in paths if Path(p).suffix.lower() in DEPTH_EXTENSIONS]
+    if depth and intrinsics is None:
+        raise click.BadParameter(
+            f"{depth[0]} is a depth image: --intrinsics is required", param_hint="'--intrinsics'"
+        )
+    if intrinsics is not None and not depth:
+        log.warning("--intrinsics %s is not used: no input is a depth image", intrinsics)
 
 
 @click.command(
@@ -150,7 +168,9 @@ def check_depth_inputs(paths, intrinsics: Path | None) -> None:
 @path_option(
     "--aligned",
     default=None,
-    help="Write the source, transformed into the target frame, as binary PLY.",
+    dash=True,
+    help="Write the source, transformed into the target frame, as binary PLY ('-' is "
+    "stdout, with -o FILE).",
 )
 @path_option(
     "--json",
@@ -191,6 +211,7 @@ def register(
     device = resolve_device(device)
     output = _stdout_output(output, json_path)
     check_depth_inputs((source, target), intrinsics)
+    check_binary_stdout(aligned, "--aligned")
     outputs = claim_outputs(
         {"-o": output, "--aligned": aligned, "--json": json_path},
         inputs=(source, target, intrinsics, weights),
@@ -220,7 +241,11 @@ def register(
                 points = load_cloud(
                     source, intrinsics=intrinsics, depth_scale=depth_scale, scale=scale
                 )
-            write_ply(aligned, (points / (scale or 1.0)) @ T[:3, :3].T + T[:3, 3])
+            moved = (points / (scale or 1.0)) @ T[:3, :3].T + T[:3, 3]
+            if is_stdout(aligned):
+                write_stdout_bytes(write_ply(None, moved))
+            else:
+                write_ply(aligned, moved)
         write_json(json_path, report)
         if is_stdout(output):
             write_stdout(format_transform(T))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import time
 from pathlib import Path
@@ -14,6 +13,8 @@ import click
 from byoc_cli.cli.display import is_quiet, progress_bar
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
+    SCALE,
+    VOXEL,
     apply,
     device_option,
     features_option,
@@ -34,6 +35,8 @@ log = logging.getLogger("byoc")
 
 #: what report.json says it is (a folder holding it is this command's own)
 REPORT_COMMAND = "byoc register-scans"
+#: the marker (``.byoc-register-scans``) that makes a folder this command's own from the start
+MARKER = "register-scans"
 
 
 def pairwise_setup(
@@ -80,9 +83,17 @@ class StageProgress:
 
 
 def _is_scans_folder(folder: Path) -> bool:
+    """A folder this command wrote (its report), or created (its marker: a run killed
+    before it wrote the report)."""
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import read_json_input
+    from byoc_cli.io.outputs import is_marked
+
+    if is_marked(folder, MARKER):
+        return True
     try:
-        report = json.loads((folder / "report.json").read_text())
-    except (OSError, ValueError):
+        report = read_json_input(folder / "report.json")
+    except InputError:
         return False
     return isinstance(report, dict) and report.get("command") == REPORT_COMMAND
 
@@ -103,20 +114,36 @@ def _load(path: Path, scale: float | None):
 
 
 @contextlib.contextmanager
-def _new_folders(*folders: Path):
-    """Create the missing ``folders``; remove the ones created (when empty) if the block fails."""
-    created = []
-    try:
-        for folder in folders:
-            if not folder.exists():
-                folder.mkdir()
-                created.append(folder)
-        yield
-    except BaseException:
-        for folder in reversed(created):
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-        raise
+def _results_folder(out: Path):
+    """Create ``out`` and ``out/poses`` and mark ``out`` as this command's own before anything
+    runs, so that a killed run leaves a folder the same command accepts; remove the stale
+    temporaries of a killed run. When the block fails, a folder that was new or empty is
+    left as it was (marker and folders removed)."""
+    from byoc_cli.io.outputs import mark_folder, new_folders, remove_stale_temporaries
+
+    was_empty = not out.exists() or not any(out.iterdir())
+    with new_folders(out):
+        marker = mark_folder(out, MARKER)  # before anything else: an empty folder is ours too
+        try:
+            with new_folders(out / "poses"):
+                for folder in (out, out / "poses"):
+                    remove_stale_temporaries(folder)
+                yield
+        except BaseException:
+            if was_empty:
+                marker.unlink(missing_ok=True)
+            raise
+
+
+def _stale_poses(poses_dir: Path, written: list[Path]) -> list[Path]:
+    """The pose files of an earlier run in ``poses_dir`` that this run does not write (a scan
+    no longer given, or no longer placed): poses/ holds exactly the last run's poses."""
+    keep = {path.name for path in written}
+    return sorted(
+        p
+        for p in poses_dir.glob("*.txt")
+        if p.name not in keep and p.is_file() and not p.is_symlink()
+    )
 
 
 def _pair_json(pair, poses, scans: list[Path]) -> dict:
@@ -164,12 +191,15 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
 )
 @apply(
     path_option("--merged", default=None, help="Write the merged model here (binary PLY)."),
-    float_option("--merged-voxel", default=0.01, help="Voxel size of the merged model, metres."),
+    float_option(
+        "--merged-voxel", type=VOXEL, default=0.01, help="Voxel size of the merged model, metres."
+    ),
     features_option,
     weights_option,
     fixed_voxel_size_option,
     float_option(
         "--icp-voxel",
+        type=VOXEL,
         default=0.02,
         help="Finest voxel of the multi-scale ICP refinement, metres (ICP at 4x, 2x, 1x).",
     ),
@@ -195,6 +225,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     ),
     float_option(
         "--scale",
+        type=SCALE,
         help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
         "check. Poses and the merged model are written in the input units.",
     ),
@@ -245,8 +276,8 @@ def register_scans(
     from byoc_cli.io.outputs import check_run_folder
 
     check_run_folder(out, _is_scans_folder, what="register-scans folder")
-    with _new_folders(out, out / "poses"):
-        _run(
+    with _results_folder(out):
+        unplaced = _run(
             scans_list,
             out,
             merged,
@@ -264,6 +295,10 @@ def register_scans(
             quiet,
             started,
         )
+    if unplaced:
+        names = ", ".join(str(scans_list[k]) for k in unplaced[:5])
+        click.echo(f"byoc: {len(unplaced)} scan(s) not placed: {names}", err=True)
+        raise SystemExit(EXIT_LOW_CONFIDENCE)
 
 
 def _run(
@@ -283,7 +318,8 @@ def _run(
     device,
     quiet,
     started,
-) -> None:
+) -> list[int]:
+    """Register and write everything; returns the indices of the scans not placed."""
     from byoc_cli import __version__
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
     from byoc_cli.io.trajectory import format_trajectory_log
@@ -370,6 +406,8 @@ def _run(
         report["timings_s"]["merge"] = time.perf_counter() - t0
     report["timings_s"]["command"] = time.perf_counter() - started
 
+    for path in _stale_poses(out / "poses", [pose_paths[k] for k in placed]):
+        outputs.remove(path)
     with outputs:  # every file is committed at the end of the block, or none
         for k in placed:
             atomic_write_text(pose_paths[k], format_transform(poses[k]))
@@ -383,10 +421,7 @@ def _run(
             f"{out}: {len(placed)}/{len(scans)} scans placed, {len(kept)}/{len(result.pairs)} "
             f"pairs kept, {len(pruned)} edges pruned, {time.perf_counter() - started:.1f} s\n"
         )
-    if result.unplaced:
-        names = ", ".join(str(scans[k]) for k in result.unplaced[:5])
-        click.echo(f"byoc: {len(result.unplaced)} scan(s) not placed: {names}", err=True)
-        raise SystemExit(EXIT_LOW_CONFIDENCE)
+    return list(result.unplaced)
 
 
 def _unscaled(T, unit: float):

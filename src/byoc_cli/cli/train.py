@@ -15,8 +15,11 @@ import click
 from byoc_cli.cli.display import is_quiet, progress_bar
 from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
+    DEPTH_SCALE,
     DEVICES,
+    LEARNING_RATE,
     SEED,
+    VOXEL,
     apply,
     choice_option,
     float_option,
@@ -34,11 +37,12 @@ log = logging.getLogger("byoc")
 
 def is_run_folder(folder: Path) -> bool:
     """True when ``folder`` holds the ``config.json`` byoc writes into a run folder."""
-    import json
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import read_json_input
 
     try:
-        doc = json.loads((folder / "config.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        doc = read_json_input(folder / "config.json", "config")
+    except InputError:
         return False
     return isinstance(doc, dict) and "byoc_cli_version" in doc and "config" in doc
 
@@ -287,7 +291,7 @@ def _blame_file(
     "[default: shipped for self-posed with the compact encoder at 0.025 m, else none].",
 )
 @apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[:2]))
-@float_option("--lr", help="Adam learning rate [default: 1e-4].")
+@float_option("--lr", type=LEARNING_RATE, help="Adam learning rate [default: 1e-4].")
 @click.option(
     "--seed",
     type=SEED,
@@ -299,9 +303,13 @@ def _blame_file(
     help="Where training runs: auto (cuda when available), cpu or cuda [default: auto].",
 )
 @apply(*(int_option(name, min=low, help=text) for name, low, text in _COUNTS[2:]))
-@float_option("--voxel-size", help="Voxel size in metres [default: 0.025].")
+@float_option("--voxel-size", type=VOXEL, help="Voxel size in metres [default: 0.025].")
 @path_option("--intrinsics", help="Intrinsics file for folders that ship none.")
-@float_option("--depth-scale", help="Depth units per metre [default: the layout's convention].")
+@float_option(
+    "--depth-scale",
+    type=DEPTH_SCALE,
+    help="Depth units per metre [default: the layout's convention].",
+)
 @apply(*(click.option(decls, default=None, help=text) for decls, text in _SWITCHES))
 @verbose_option
 @quiet_option("Plain log lines instead of a progress bar; no warnings.", expose_value=True)

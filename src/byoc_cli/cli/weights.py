@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import Any
 
 import click
 
 from byoc_cli.cli.errors import handle_errors
-from byoc_cli.cli.options import SEED, float_option, path_option, verbosity_options
-from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
+from byoc_cli.cli.options import SEED, VOXEL, float_option, path_option, verbosity_options
+from byoc_cli.cli.output import (
+    check_binary_stdout,
+    claim_outputs,
+    is_stdout,
+    write_json,
+    write_stdout,
+    write_stdout_bytes,
+)
 
 
 @click.group("weights")
@@ -108,8 +116,12 @@ def summary_lines(meta: dict[str, Any]) -> list[str]:
 @weights.command("init")
 @click.option("--arch", default="compact", show_default=True, help="Encoder architecture name.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seeds the initialisation.")
-@float_option("--voxel-size", default=0.025, help="Voxel size (m) recorded in the metadata.")
-@path_option("-o", "--output", required=True, help="The weights file to write.")
+@float_option(
+    "--voxel-size", type=VOXEL, default=0.025, help="Voxel size (m) recorded in the metadata."
+)
+@path_option(
+    "-o", "--output", required=True, dash=True, help="The weights file to write ('-' is stdout)."
+)
 @verbosity_options
 @handle_errors
 def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:
@@ -118,14 +130,20 @@ def init(arch: str, seed: int, voxel_size: float, output: Path) -> None:
     For benchmarks and tests: random features register poorly.
     """
     from byoc_cli.models.encoder import ENCODER_CONFIGS
-    from byoc_cli.pipeline.weights import init_weights, save_weights
+    from byoc_cli.pipeline.weights import init_weights, save_weights, weights_bytes
 
     if arch not in ENCODER_CONFIGS:
         raise click.BadParameter(
             f"unknown architecture {arch!r} (known: {', '.join(sorted(ENCODER_CONFIGS))})",
             param_hint="'--arch'",
         )
+    check_binary_stdout(output, "-o")
     with claim_outputs({"-o": output}):
         encoder, meta = init_weights(arch, seed, voxel_size)
+        if is_stdout(output):  # the file on stdout; its name and digest go to stderr
+            blob = weights_bytes(output, encoder, meta)
+            write_stdout_bytes(blob)
+            click.echo(f"byoc: -\t{hashlib.sha256(blob).hexdigest()}", err=True)
+            return
         digest = save_weights(output, encoder, meta)
         write_stdout(f"{output}\t{digest}\n")

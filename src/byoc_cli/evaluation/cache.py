@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from byoc_cli.errors import InputError
+from byoc_cli.io.inputs import open_input
 from byoc_cli.pipeline.features import CloudFeatures
 
 __all__ = ["CACHE_VERSION", "FeatureCache", "file_identity"]
@@ -105,14 +107,14 @@ class FeatureCache:
     @staticmethod
     def _load(path: Path, key: str) -> CloudFeatures | None:
         try:
-            with np.load(path, allow_pickle=False) as data:
+            with open_input(path, "cache") as f, np.load(f, allow_pickle=False) as data:
                 if str(data["key"]) != key:
                     raise ValueError("key mismatch")
                 points = torch.from_numpy(np.array(data["points"], dtype=np.float64))
                 feats = torch.from_numpy(np.array(data["feats"], dtype=np.float32))
                 index = torch.from_numpy(np.array(data["point_index"], dtype=np.int64))
                 coords = torch.from_numpy(np.array(data["coords"], dtype=np.int64))
-        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile, InputError) as exc:
             warnings.warn(
                 f"{path}: unusable feature cache entry ({exc}); recomputing", stacklevel=3
             )

@@ -26,6 +26,7 @@ __all__ = [
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_text",
+    "temp_sibling",
     "write_errors",
     "write_problem",
 ]
@@ -49,6 +50,30 @@ def _target(path: str | os.PathLike[str]) -> Path:
     return path
 
 
+#: Longest file name in bytes when the file system does not say (most allow 255).
+DEFAULT_NAME_MAX = 255
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):  # no such folder (yet), or not POSIX
+        return DEFAULT_NAME_MAX
+
+
+def temp_prefix(target: Path, suffix: str) -> str:
+    """``.<name>`` of the temporary names of ``target`` (see :func:`temp_sibling`), the name
+    cut (in bytes) so that ``.<name>.<8 hex>.<suffix>`` fits the folder's name limit: a
+    legal 250-byte name still gets a temporary beside it."""
+    room = _name_max(target.parent) - len(f"..{'0' * 8}.{suffix}".encode())
+    return "." + os.fsdecode(os.fsencode(target.name)[: max(room, 1)])
+
+
+def temp_sibling(target: Path, suffix: str) -> Path:
+    """A new hidden name ``.<name>.<8 hex>.<suffix>`` beside ``target`` (not created)."""
+    return target.with_name(f"{temp_prefix(target, suffix)}.{secrets.token_hex(4)}.{suffix}")
+
+
 def _create_temp(target: Path) -> tuple[int, Path]:
     """Create ``.<name>.<random>.tmp`` beside ``target``; returns ``(fd, temp_path)``.
 
@@ -57,7 +82,7 @@ def _create_temp(target: Path) -> tuple[int, Path]:
     """
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     for _ in range(100):
-        temp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.tmp")
+        temp = temp_sibling(target, "tmp")
         try:
             fd = os.open(temp, flags, 0o666)
         except FileExistsError:

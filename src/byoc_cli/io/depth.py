@@ -98,6 +98,8 @@ def _intrinsics_from_json(text: str, path: Path) -> Intrinsics:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+    except RecursionError as exc:
+        raise InputError(path, "not valid JSON (nested too deeply)") from exc
     if isinstance(data, dict) and "intrinsic_matrix" not in data and "intrinsic" in data:
         data = data["intrinsic"]  # Open3D PinholeCameraParameters
     if not isinstance(data, dict) or "intrinsic_matrix" not in data:
@@ -151,7 +153,7 @@ def read_intrinsics(path: str | os.PathLike[str]) -> Intrinsics:
             than ``[0, 0, 1]``, non-positive focal lengths; the message names the file.
     """
     path = Path(path)
-    text = _read_text(path)
+    text = _read_text(path, "intrinsics")
     if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
         return _intrinsics_from_json(text, path)
     return _intrinsics_from_text(text, path)
@@ -241,7 +243,7 @@ def read_depth_image(path: str | os.PathLike[str], depth_scale: float) -> np.nda
 
     depth_scale = _check_depth_scale(depth_scale)
     path = Path(path)
-    with _open_input(path) as f:
+    with _open_input(path, "image") as f:
         try:
             with Image.open(f) as image:
                 mode = image.mode

@@ -24,8 +24,8 @@ LAST_ROW_TOL = 1e-6
 ORTHONORMAL_TOL = 1e-3
 
 
-def _read_text(path: Path) -> str:
-    with _open_input(path) as f:
+def _read_text(path: Path, kind: str = "matrix") -> str:
+    with _open_input(path, kind) as f:
         raw = f.read()
     try:
         return raw.decode("utf-8-sig")

@@ -22,23 +22,36 @@ back to its previous bytes and the new ones are removed. When the block raises, 
 temporaries are removed and nothing named by the user has changed.
 
 :func:`check_run_folder` is the policy for a command that fills a folder (``train --out``):
-only a new or empty folder, or one the tool recognises as its own.
+only a new or empty folder, or one the tool recognises as its own; :func:`mark_folder` makes a
+folder the tool's own from the moment it creates it, so a killed run can be run again.
+:func:`new_folders` creates folders (and parents) and removes them when the block fails;
+:class:`StagingFolder` is a locked hidden folder renamed into place at the end, and
+:func:`remove_stale_staging` removes the ones killed runs left.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import secrets
 import stat
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from byoc_cli.errors import InputError
-from byoc_cli.io.atomic import STAGER, write_problem
+from byoc_cli.io.atomic import STAGER, temp_prefix, temp_sibling, write_problem
 
-__all__ = ["OutputSet", "check_run_folder", "is_stdout"]
+__all__ = [
+    "OutputSet",
+    "StagingFolder",
+    "check_run_folder",
+    "is_marked",
+    "is_stdout",
+    "mark_folder",
+    "new_folders",
+    "remove_stale_staging",
+    "remove_stale_temporaries",
+]
 
 
 #: paths that name the standard streams of the process (Linux and macOS spellings)
@@ -94,7 +107,7 @@ def _probe(target: Path, shown: Path) -> None:
         raise InputError(shown, "cannot write: the folder does not exist")
     if not parent.is_dir():
         raise InputError(shown, f"cannot write: {shown.parent} is not a folder")
-    probe = parent / f".{target.name}.{secrets.token_hex(4)}.probe"
+    probe = temp_sibling(target, "probe")
     try:
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except OSError as exc:
@@ -122,6 +135,7 @@ class OutputSet:
         self.add_inputs(inputs, input_dirs)
         self._claimed: dict[Path, Path] = {}  # real target -> path as the user named it
         self._staged: dict[Path, Path] = {}  # real target -> complete temporary file
+        self._removed: list[Path] = []  # files of an earlier run removed at commit
         self._token: Any = None
 
     def add_inputs(
@@ -185,6 +199,20 @@ class OutputSet:
         self._claimed[target] = shown
         return shown
 
+    def remove(self, path: str | os.PathLike[str]) -> None:
+        """Remove ``path`` (a stale output of an earlier run of the same command) when the
+        set commits, with the same all-or-nothing guarantee as the files written.
+
+        Raises:
+            InputError: ``path`` is claimed by this run, or is not a regular file.
+        """
+        target = Path(os.path.realpath(path))
+        if target in self._claimed:
+            raise InputError(path, "is an output of this run; cannot also remove it")
+        if not target.is_file():
+            raise InputError(path, "is not a regular file; refusing to remove it")
+        self._removed.append(target)
+
     # ------------------------------------------------------------------ transaction
 
     def _stage(self, target: Path, temp: Path) -> bool:
@@ -217,7 +245,8 @@ class OutputSet:
         self._staged.clear()
 
     def commit(self) -> None:
-        """Put every staged file in place, all of them or (on failure) none.
+        """Put every staged file in place and remove the files given to :meth:`remove`, all
+        of it or (on failure) none.
 
         Raises:
             InputError: a rename failed; every file replaced so far has its old bytes back.
@@ -235,6 +264,19 @@ class OutputSet:
                     raise InputError(self._claimed[target], write_problem(exc, target)) from exc
                 done.append((target, backup))
                 del self._staged[target]
+            for target in self._removed:
+                backup = _keep_backup(target)
+                try:
+                    os.unlink(target)
+                except FileNotFoundError:
+                    pass
+                except OSError as exc:
+                    if backup is not None:
+                        with contextlib.suppress(OSError):
+                            os.unlink(backup)
+                    raise InputError(target, f"cannot remove it ({exc.strerror or exc})") from exc
+                done.append((target, backup))
+            self._removed.clear()
         except BaseException:
             _roll_back(done)
             self.discard()
@@ -251,7 +293,7 @@ def _keep_backup(target: Path) -> Path | None:
     """A second name for the current ``target`` (hard link, else a copy); None when new."""
     if not target.exists():
         return None
-    backup = target.with_name(f".{target.name}.{secrets.token_hex(4)}.bak")
+    backup = temp_sibling(target, "bak")
     try:
         os.link(target, backup)
     except OSError:
@@ -317,3 +359,163 @@ def check_run_folder(
         f"is not empty and not a byoc {what} (holds {shown}); refusing to write into it "
         f"(give a new or empty folder)",
     )
+
+
+@contextlib.contextmanager
+def new_folders(*folders: str | os.PathLike[str]) -> Iterator[list[Path]]:
+    """Create the missing ``folders`` (and their missing parents, in order); when the block
+    raises, remove every folder created here that is empty again, innermost first.
+
+    ``register-batch --out-dir x/y/z`` refused for bad input leaves neither ``x/y/z`` nor
+    ``x/y``. Yields the folders created.
+
+    Raises:
+        InputError: a folder cannot be created (naming it).
+    """
+    created: list[Path] = []
+    try:
+        for folder in folders:
+            missing = []
+            path = Path(folder)
+            while not path.exists() and not path.is_symlink() and path != path.parent:
+                missing.append(path)
+                path = path.parent
+            for path in reversed(missing):
+                try:
+                    path.mkdir()
+                except FileExistsError:
+                    continue
+                except OSError as exc:
+                    raise InputError(path, write_problem(exc, path)) from exc
+                created.append(path)
+        yield created
+    except BaseException:
+        for path in reversed(created):
+            with contextlib.suppress(OSError):
+                path.rmdir()
+        raise
+
+
+#: The file that marks a folder as a command's own from the moment the command creates it
+#: (``.byoc-<command>``): a run killed before it wrote anything can be run again.
+MARKER_PREFIX = ".byoc-"
+
+
+def mark_folder(folder: str | os.PathLike[str], command: str) -> Path:
+    """Mark ``folder`` as ``command``'s own (the marker is an empty hidden file).
+
+    Raises:
+        InputError: the marker cannot be written.
+    """
+    marker = Path(folder) / f"{MARKER_PREFIX}{command}"
+    try:
+        marker.touch()
+    except OSError as exc:
+        raise InputError(marker, write_problem(exc, marker)) from exc
+    return marker
+
+
+def is_marked(folder: str | os.PathLike[str], command: str) -> bool:
+    """True when ``folder`` holds ``command``'s marker (see :func:`mark_folder`)."""
+    return (Path(folder) / f"{MARKER_PREFIX}{command}").is_file()
+
+
+# ---------------------------------------------------------------- staging folders
+
+
+class StagingFolder:
+    """A new hidden folder beside ``target`` (``.<name>.<8 hex>.tmp``), locked while it lives.
+
+    A command that fills ``target`` writes into it and renames it to ``target`` at the end.
+    The folder's descriptor holds an exclusive ``flock`` as long as the process runs; a
+    process that is killed loses its lock, so :func:`remove_stale_staging` can tell a
+    leftover from a folder in use and remove it on the next run.
+
+    Raises:
+        InputError: the folder cannot be created.
+    """
+
+    def __init__(self, target: str | os.PathLike[str]) -> None:
+        self.target = Path(target)
+        self.path = temp_sibling(self.target, "tmp")
+        try:
+            self.path.mkdir()
+        except OSError as exc:
+            raise InputError(self.target, write_problem(exc, self.path)) from exc
+        self._fd = _lock(self.path)
+
+    def release(self) -> None:
+        """Drop the lock (the folder has been renamed or removed)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+def _lock(folder: Path) -> int | None:
+    """An open descriptor of ``folder`` holding an exclusive lock; None when the lock is
+    taken or locks are not available here."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no stale-folder detection
+        return None
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def remove_stale_staging(target: str | os.PathLike[str]) -> list[Path]:
+    """Remove the staging folders of ``target`` left by killed runs (see
+    :class:`StagingFolder`): hidden ``.<name>.<8 hex>.tmp`` folders beside it whose lock no
+    live process holds. Returns those removed."""
+    import re
+    import shutil
+
+    target = Path(target)
+    pattern = re.compile(re.escape(temp_prefix(target, "tmp")) + r"\.[0-9a-f]{8}\.tmp")
+    try:
+        entries = list(target.parent.iterdir()) if target.parent.is_dir() else []
+    except OSError:
+        return []
+    removed = []
+    for entry in entries:
+        if not (pattern.fullmatch(entry.name) and entry.is_dir() and not entry.is_symlink()):
+            continue
+        fd = _lock(entry)
+        if fd is None:  # in use by a running command (or no locks here): leave it
+            continue
+        try:
+            shutil.rmtree(entry, ignore_errors=True)
+        finally:
+            os.close(fd)
+        removed.append(entry)
+    return removed
+
+
+#: The temporary files of :mod:`byoc_cli.io.atomic` and of :class:`OutputSet`.
+_TEMPORARY = r"\..+\.[0-9a-f]{8}\.(tmp|bak|probe)"
+
+
+def remove_stale_temporaries(folder: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporary files a killed run left in ``folder``, a folder the command owns
+    (``.<name>.<8 hex>.tmp``, ``.bak``, ``.probe``: names only byoc gives). Returns them."""
+    import re
+
+    pattern = re.compile(_TEMPORARY)
+    removed = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return []
+    for entry in entries:
+        if pattern.fullmatch(entry.name) and entry.is_file() and not entry.is_symlink():
+            with contextlib.suppress(OSError):
+                entry.unlink()
+                removed.append(entry)
+    return removed

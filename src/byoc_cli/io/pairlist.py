@@ -6,13 +6,18 @@ separated by whitespace; relative paths are relative to the list file's folder.
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import NamedTuple
 
 from byoc_cli.errors import InputError
+from byoc_cli.io.inputs import read_input
 
-__all__ = ["PairEntry", "default_output_name", "read_pair_list", "shard"]
+__all__ = ["MAX_PAIRS", "PairEntry", "default_output_name", "read_pair_list", "shard"]
+
+#: Most pairs in one list: each costs a few hundred bytes of paths before the first runs.
+MAX_PAIRS = 1_000_000
 
 
 class PairEntry(NamedTuple):
@@ -41,23 +46,23 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
     """Read a pair list.
 
     Raises:
-        InputError: naming the file (and the line): unreadable, not UTF-8 text, a line with
-            fewer than 2 or more than 3 columns, or no pair at all.
+        InputError: naming the file (and the line): unreadable, not a regular file, larger
+            than a pair list may be, not UTF-8 text, a line with fewer than 2 or more than 3
+            columns, more than :data:`MAX_PAIRS` pairs, or no pair at all.
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a pair list")
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = read_input(path, "pair list").decode("utf-8")
     except UnicodeDecodeError as exc:
         raise InputError(
             path, "is not a UTF-8 text file of 'source target [output]' lines"
         ) from exc
-    except IsADirectoryError as exc:
-        raise InputError(path, "is a folder, not a pair list") from exc
-    except OSError as exc:
-        raise InputError(path, exc.strerror or str(exc)) from exc
     folder = path.parent
     pairs: list[PairEntry] = []
-    for number, raw in enumerate(text.splitlines(), start=1):
+    # one line at a time: a list of millions of short lines never exists as a list of strings
+    for number, raw in enumerate(io.StringIO(text, newline=None), start=1):
         columns = raw.split("#", 1)[0].split()
         if not columns:
             continue
@@ -66,6 +71,8 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
                 path,
                 f"line {number}: expected 'source target [output]', got {len(columns)} column(s)",
             )
+        if len(pairs) == MAX_PAIRS:
+            raise InputError(path, f"holds more than {MAX_PAIRS:,} pairs; split the list")
         output = _resolve(folder, columns[2]) if len(columns) == 3 else None
         pairs.append(
             PairEntry(

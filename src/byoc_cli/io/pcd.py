@@ -16,6 +16,7 @@ from typing import BinaryIO
 import numpy as np
 
 from byoc_cli.errors import InputError, require_open3d
+from byoc_cli.io.inputs import MAX_OPEN3D_POINTS, check_point_count
 
 __all__ = ["read_pcd_points", "read_xyz_points"]
 
@@ -101,6 +102,7 @@ def read_pcd_points(f: BinaryIO, path: Path) -> np.ndarray:
     count, row_bytes, data = _pcd_layout(header, path)
     if count == 0:
         raise InputError(path, "empty point cloud (0 points)")
+    check_point_count(count, path, MAX_OPEN3D_POINTS)
     if data == "ascii":
         lines = _count_lines(f)
         if lines < count:

@@ -18,6 +18,7 @@ import plyfile
 
 from byoc_cli.errors import InputError, ShapeError
 from byoc_cli.io.atomic import atomic_write, write_errors
+from byoc_cli.io.inputs import MAX_CLOUD_POINTS, check_point_count
 
 __all__ = ["read_ply_general", "read_ply_points", "write_ply"]
 
@@ -45,10 +46,11 @@ def _is_list(prop: plyfile.PlyProperty) -> bool:
     return isinstance(prop, plyfile.PlyListProperty)
 
 
-def read_ply_general(path: Path) -> np.ndarray:
-    """General but slow path (list properties before or inside the vertex element)."""
+def read_ply_general(f: BinaryIO, path: Path) -> np.ndarray:
+    """General but slow path (list properties before or inside the vertex element) on the
+    PLY file open as ``f`` (at its start)."""
     try:
-        data = plyfile.PlyData.read(str(path), mmap=False)
+        data = plyfile.PlyData.read(f, mmap=False)
         vertex = data["vertex"].data
         return np.stack([vertex[k].astype(np.float64) for k in "xyz"], axis=1)
     except plyfile.PlyElementParseError as exc:
@@ -72,6 +74,7 @@ def _read_ply_binary(
         raise InputError(
             path, f"truncated PLY file (header says {count} vertices, data holds {found})"
         )
+    check_point_count(count, path)
     out = np.empty((count, 3), dtype=np.float64)
     chunk = min(count, _CHUNK_ROWS)
     buf = bytearray(chunk * dtype.itemsize)
@@ -101,6 +104,8 @@ def _read_ply_ascii(
     names = [p.name for p in vertex.properties]
     cols = tuple(names.index(k) for k in "xyz")
     rows = min(vertex.count, available // (_ASCII_PROPERTY_BYTES * len(names)) + 1)
+    if rows > MAX_CLOUD_POINTS:  # the file may hold them: refuse before reading
+        check_point_count(vertex.count, path)
     try:
         with warnings.catch_warnings():  # "input contained no data": reported below
             warnings.simplefilter("ignore", UserWarning)
@@ -176,6 +181,7 @@ def read_ply_points(f: BinaryIO, path: Path) -> np.ndarray | None:
         skip = sum(el.count * el.dtype(header.byte_order).itemsize for el in before)
         return _read_ply_binary(f, path, vertex, header.byte_order, skip)
     _check_counts_fit(f, path, header)  # before plyfile allocates what the header claims
+    check_point_count(vertex.count, path)
     return None
 
 
@@ -193,20 +199,21 @@ def _as_uint8_colors(colors: np.ndarray, n: int) -> np.ndarray:
 
 
 def write_ply(
-    path: str | os.PathLike[str],
+    path: str | os.PathLike[str] | None,
     points: np.ndarray,
     colors: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     *,
     dtype: type[np.floating] | str = np.float32,
-) -> None:
-    """Write a binary little-endian PLY file atomically.
+) -> bytes | None:
+    """Write a binary little-endian PLY file atomically (``path`` None: return its bytes).
 
     Vertex properties: ``x y z`` (``float`` or ``double``), then ``nx ny nz`` (same type)
     when ``normals`` are given, then ``red green blue`` (``uchar``) when ``colors`` are.
 
     Args:
-        path: the output file (replaced atomically; nothing is left on failure).
+        path: the output file (replaced atomically; nothing is left on failure), or None
+            for the file's bytes (standard output).
         points: ``(N, 3)`` coordinates (any real dtype; N may be 0).
         colors: optional ``(N, 3)`` uint8 (or integers in 0..255).
         normals: optional ``(N, 3)`` real.
@@ -243,5 +250,10 @@ def write_ply(
             vertex[k] = colors[:, j]
     element = plyfile.PlyElement.describe(vertex, "vertex")
     ply = plyfile.PlyData([element], text=False, byte_order="<")
+    if path is None:
+        buffer = io.BytesIO()
+        ply.write(buffer)
+        return buffer.getvalue()
     with atomic_write(path, "wb") as f, write_errors(path):
         ply.write(f)
+    return None

@@ -14,13 +14,13 @@ the problem in a short phrase; points with NaN or Inf coordinates are dropped an
 from __future__ import annotations
 
 import os
-import stat
 from pathlib import Path
 from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
 from byoc_cli.errors import InputError, ShapeError
+from byoc_cli.io.inputs import check_point_count, open_input
 from byoc_cli.io.pcd import read_pcd_points, read_xyz_points
 from byoc_cli.io.ply import _CHUNK_ROWS, read_ply_general, read_ply_points, write_ply
 
@@ -62,34 +62,17 @@ class LoadedCloud(NamedTuple):
 # ---------------------------------------------------------------------------- helpers
 
 
-def _open_input(path: str | os.PathLike[str]) -> BinaryIO:
-    """Open an input file for binary reading, turning OS errors into :class:`InputError`.
+def _open_input(path: str | os.PathLike[str], kind: str = "cloud") -> BinaryIO:
+    """Open an input file for binary reading (:func:`~byoc_cli.io.inputs.open_input`: a
+    regular file within the cap of ``kind``, never a FIFO or a device) that is not empty.
 
     Raises:
-        InputError: "no such file", "is a directory", "permission denied",
-            "empty file (0 bytes)", "cannot read: <reason>".
+        InputError: "no such file", "is a directory", "permission denied", "is a FIFO, not a
+            regular file", "is 9 GiB, larger than ...", "empty file (0 bytes)",
+            "cannot read: <reason>".
     """
-    try:
-        st = os.stat(path)
-    except (FileNotFoundError, NotADirectoryError) as exc:
-        raise InputError(path, "no such file") from exc
-    except PermissionError as exc:
-        raise InputError(path, "permission denied") from exc
-    except OSError as exc:
-        raise InputError(path, f"cannot read: {exc.strerror or exc}") from exc
-    if stat.S_ISDIR(st.st_mode):
-        raise InputError(path, "is a directory")
-    try:
-        f = open(path, "rb")
-    except (FileNotFoundError, NotADirectoryError) as exc:
-        raise InputError(path, "no such file") from exc
-    except IsADirectoryError as exc:
-        raise InputError(path, "is a directory") from exc
-    except PermissionError as exc:
-        raise InputError(path, "permission denied") from exc
-    except OSError as exc:
-        raise InputError(path, f"cannot read: {exc.strerror or exc}") from exc
-    if stat.S_ISREG(st.st_mode) and st.st_size == 0:
+    f = open_input(path, kind)
+    if os.fstat(f.fileno()).st_size == 0:
         f.close()
         raise InputError(path, "empty file (0 bytes)")
     return f
@@ -158,12 +141,13 @@ def _read_npy(path: Path) -> np.ndarray:
         raise InputError(path, f"NPY array has dtype {dtype}, expected float or int")
     if shape[0] == 0:
         raise InputError(path, "empty point cloud (0 points)")
+    check_point_count(shape[0], path)
     if shape[0] * 3 * dtype.itemsize > available:
         raise InputError(
             path,
             f"truncated or corrupt NPY file (header says {shape[0]} points, the data holds fewer)",
         )
-    try:
+    try:  # checked above to be a regular file of the size the header says
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, EOFError, OSError, OverflowError) as exc:
         raise InputError(path, f"truncated or corrupt NPY file ({exc})") from exc
@@ -176,16 +160,19 @@ def _read_npy(path: Path) -> np.ndarray:
 def _read_ply(path: Path) -> np.ndarray:
     with _open_input(path) as f:
         points = read_ply_points(f, path)
-    return read_ply_general(path) if points is None else points
+    if points is not None:
+        return points
+    with _open_input(path, "cloud-general") as f:
+        return read_ply_general(f, path)
 
 
 def _read_pcd(path: Path) -> np.ndarray:
-    with _open_input(path) as f:
+    with _open_input(path, "cloud-open3d") as f:
         return read_pcd_points(f, path)
 
 
 def _read_xyz(path: Path, fmt: str) -> np.ndarray:
-    with _open_input(path) as f:
+    with _open_input(path, "cloud-open3d") as f:
         return read_xyz_points(f, path, fmt)
 
 

@@ -37,6 +37,7 @@ from typing import NamedTuple
 import numpy as np
 
 from byoc_cli.errors import DatasetError, InputError
+from byoc_cli.io.inputs import read_input
 
 __all__ = [
     "EVALUATION_SUFFIX",
@@ -134,14 +135,7 @@ class PreparedPair(NamedTuple):
 
 
 def _read_lines(path: Path) -> list[str]:
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError as exc:
-        raise InputError(path, "file not found") from exc
-    except IsADirectoryError as exc:
-        raise InputError(path, "is a directory") from exc
-    except OSError as exc:
-        raise InputError(path, f"cannot read ({exc.strerror or exc})") from exc
+    raw = read_input(path, "benchmark")
     try:
         return raw.decode("utf-8-sig").splitlines()
     except UnicodeDecodeError as exc:

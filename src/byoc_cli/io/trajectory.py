@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from byoc_cli.errors import InputError, ShapeError
+from byoc_cli.io.inputs import read_input
 
 __all__ = [
     "format_trajectory_log",
@@ -130,9 +131,9 @@ def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nd
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from exc
+        text = read_input(path, "trajectory").decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"cannot read it ({exc})") from exc
     stamps, poses = [], []
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()

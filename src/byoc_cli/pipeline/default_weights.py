@@ -11,6 +11,7 @@ import hashlib
 from pathlib import Path
 
 from byoc_cli.errors import WeightsError
+from byoc_cli.io.inputs import read_input
 
 #: folder of the shipped weights inside the installed package
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "data" / "weights"
@@ -34,7 +35,7 @@ def verify_default_weights(path: Path | None = None, checksum: Path | None = Non
     path = DEFAULT_WEIGHTS if path is None else path
     if not path.is_file():
         raise WeightsError(path, "no weights ship with this install (pass --weights FILE)")
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    digest = hashlib.sha256(read_input(path, "weights", WeightsError)).hexdigest()
     _check_digest(path, digest, DEFAULT_CHECKSUM if checksum is None else checksum)
     return digest
 

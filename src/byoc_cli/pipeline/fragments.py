@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import secrets
 import shutil
 import warnings
 from collections.abc import Callable
@@ -38,6 +37,7 @@ import numpy as np
 
 from byoc_cli.errors import DatasetError, InputError
 from byoc_cli.io.atomic import atomic_write_text
+from byoc_cli.io.outputs import StagingFolder, remove_stale_staging
 from byoc_cli.io.pointcloud import write_ply
 from byoc_cli.io.rgbd import RGBDSequence
 from byoc_cli.io.threedmatch import EVALUATION_SUFFIX
@@ -157,15 +157,15 @@ def _check_out_dir(out_dir: Path) -> None:
         raise InputError(out_dir, "folder exists and is not empty (choose a new --out folder)")
 
 
-def _staging_dir(out_dir: Path) -> Path:
-    """A new hidden folder beside ``out_dir``, renamed to it when everything is written."""
+def _staging_dir(out_dir: Path) -> StagingFolder:
+    """A new hidden folder beside ``out_dir``, renamed to it when everything is written;
+    the ones that killed runs left beside it are removed first."""
     try:
         out_dir.parent.mkdir(parents=True, exist_ok=True)
-        staging = out_dir.parent / f".{out_dir.name}.{secrets.token_hex(4)}.tmp"
-        staging.mkdir()
     except OSError as exc:
         raise InputError(out_dir, f"cannot create the folder ({exc.strerror or exc})") from exc
-    return staging
+    remove_stale_staging(out_dir)
+    return StagingFolder(out_dir)
 
 
 def _publish(staging: Path, out_dir: Path) -> None:
@@ -297,7 +297,8 @@ def make_fragment_benchmark(
         "info": {"voxel": INFO_VOXEL, "radius": INFO_RADIUS, "max": INFO_MAX_CORRESPONDENCES},
     }  # fmt: skip
 
-    staging = _staging_dir(out_dir)
+    folder = _staging_dir(out_dir)
+    staging = folder.path
     try:
         (staging / scene).mkdir()
         (staging / f"{scene}{EVALUATION_SUFFIX}").mkdir()
@@ -344,4 +345,6 @@ def make_fragment_benchmark(
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    finally:
+        folder.release()
     return result

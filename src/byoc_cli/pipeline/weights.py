@@ -10,15 +10,18 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import struct
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, BinaryIO, NamedTuple
 
 import torch
 
+from byoc_cli import limits
 from byoc_cli.errors import WeightsError
 from byoc_cli.io.atomic import atomic_write_bytes
+from byoc_cli.io.inputs import SIZE_CAPS, open_input
 from byoc_cli.io.jsonout import strict_dumps
 from byoc_cli.models.encoder import ENCODER_CONFIGS, EncoderConfig, GeometricEncoder
 
@@ -39,9 +42,11 @@ _REQUIRED = {
     "tensors_sha256": str,
 }
 _TRAINING_REQUIRED = {"variant": str, "steps": int, "seed": int, "metrics": dict}
-_MAX_HEADER_BYTES = 100 * 1024 * 1024
+#: Largest safetensors header (JSON) read: names, shapes and offsets of the tensors and the
+#: metadata take kilobytes; a JSON document is parsed into objects many times its size.
+_MAX_HEADER_BYTES = 8 * 1024 * 1024
 #: Hard limits checked before anything is built from the metadata.
-MAX_VOXEL_SIZE = 10.0
+MAX_VOXEL_SIZE = limits.MAX_VOXEL_SIZE
 MAX_METRICS = 1000
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(EncoderConfig)}
 
@@ -126,8 +131,29 @@ def save_weights(
 ) -> str:
     """Write ``encoder`` with ``metadata`` atomically; returns the file's SHA-256.
 
+    See :func:`weights_bytes` (what raises).
+    """
+    blob = weights_bytes(path, encoder, metadata, dtype=dtype)
+    atomic_write_bytes(path, blob)
+    return hashlib.sha256(blob).hexdigest()
+
+
+def weights_bytes(
+    path: str | Path,
+    encoder: GeometricEncoder,
+    metadata: dict[str, Any],
+    *,
+    dtype: torch.dtype = torch.float32,
+) -> bytes:
+    """The weights file of ``encoder`` with ``metadata`` (``path``: its name, for messages).
+
     ``dtype`` (float32 or float16) is the storage type of the floating-point tensors; the
     loader always builds a float32 encoder.
+
+    Raises:
+        WeightsError: naming ``path``, when the metadata breaks the spec or a tensor holds NaN
+            or Inf (a diverged run): nothing is written that :func:`load_weights` refuses.
+        ValueError: ``dtype`` is not float32 or float16.
     """
     from safetensors.torch import save
 
@@ -136,26 +162,55 @@ def save_weights(
     tensors = {
         k: v.to(dtype) if v.is_floating_point() else v for k, v in _state_tensors(encoder).items()
     }
+    # never write a file that load_weights refuses
+    validate_metadata(path, {**metadata, "tensors_sha256": ""})
+    _check_finite(path, tensors)
     meta = dict(metadata)
     meta["tensors_sha256"] = tensors_sha256(tensors)
-    blob = save(tensors, metadata={METADATA_KEY: strict_dumps(meta, sort_keys=True)})
-    atomic_write_bytes(path, blob)
-    return hashlib.sha256(blob).hexdigest()
+    return save(tensors, metadata={METADATA_KEY: strict_dumps(meta, sort_keys=True)})
 
 
-def _read_header(path: Path, blob: bytes) -> dict[str, Any]:
-    if len(blob) < 8:
+def _read_header(path: Path, f: BinaryIO) -> dict[str, Any]:
+    """The safetensors header of the weights file open as ``f`` (read from its start; the
+    tensor data is not read)."""
+    size = os.fstat(f.fileno()).st_size
+    head = f.read(8)
+    if len(head) < 8:
         raise WeightsError(path, "not a safetensors file (too short)")
-    (header_len,) = struct.unpack("<Q", blob[:8])
-    if header_len > min(_MAX_HEADER_BYTES, len(blob) - 8):
+    (header_len,) = struct.unpack("<Q", head)
+    if header_len > min(_MAX_HEADER_BYTES, size - 8):
         raise WeightsError(path, "not a safetensors file (bad header length)")
     try:
-        header = json.loads(blob[8 : 8 + header_len])
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        header = json.loads(f.read(header_len))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise WeightsError(path, "not a safetensors file (header is not JSON)") from exc
     if not isinstance(header, dict):
         raise WeightsError(path, "not a safetensors file (header is not an object)")
     return header
+
+
+def _metadata(path: Path, header: dict[str, Any]) -> Any:
+    """The byoc metadata object of a safetensors header (not yet validated)."""
+    raw_meta = header.get("__metadata__")
+    raw_meta = raw_meta.get(METADATA_KEY) if isinstance(raw_meta, dict) else None
+    if raw_meta is None:
+        raise WeightsError(path, "safetensors file has no byoc metadata (not a byoc weights file)")
+    try:
+        return json.loads(raw_meta)
+    except (TypeError, json.JSONDecodeError, RecursionError) as exc:
+        raise WeightsError(path, "byoc metadata is not valid JSON") from exc
+
+
+def _check_finite(path: str | Path, tensors: dict[str, torch.Tensor]) -> None:
+    """Refuse tensors holding NaN or Inf (a diverged training run): they give NaN features.
+
+    Raises:
+        WeightsError: naming the first such tensor.
+    """
+    for name in sorted(tensors):
+        tensor = tensors[name]
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise WeightsError(path, f"tensor {name!r} holds NaN or Inf values")
 
 
 def validate_metadata(path: str | Path, meta: Any) -> EncoderConfig:
@@ -247,36 +302,28 @@ def load_weights(path: str | Path) -> LoadedWeights:
     """Read, validate and build the encoder of a weights file.
 
     Raises:
-        WeightsError: the file is missing, not safetensors, or does not match the spec
-            (metadata, tensor names, shapes, dtypes or checksum).
+        WeightsError: the file is missing, not a regular file, larger than a weights file may
+            be, not safetensors, or does not match the spec (metadata, tensor names, shapes,
+            dtypes or checksum), or a tensor holds NaN or Inf.
     """
     from safetensors import SafetensorError
     from safetensors.torch import load
 
     path = Path(path)
-    try:
-        blob = path.read_bytes()
-    except FileNotFoundError as exc:
-        raise WeightsError(path, "no such file") from exc
-    except IsADirectoryError as exc:
-        raise WeightsError(path, "is a directory") from exc
-    except OSError as exc:
-        raise WeightsError(path, f"cannot read ({exc.strerror})") from exc
-    header = _read_header(path, blob)
-    raw_meta = (header.get("__metadata__") or {}).get(METADATA_KEY)
-    if raw_meta is None:
-        raise WeightsError(path, "safetensors file has no byoc metadata (not a byoc weights file)")
-    try:
-        meta = json.loads(raw_meta)
-    except json.JSONDecodeError as exc:
-        raise WeightsError(path, "byoc metadata is not valid JSON") from exc
-    config = validate_metadata(path, meta)
+    with open_input(path, "weights", WeightsError) as f:
+        # the header and the metadata are checked before the tensor data is read
+        header = _read_header(path, f)
+        meta = _metadata(path, header)
+        config = validate_metadata(path, meta)
+        f.seek(0)
+        blob = f.read(SIZE_CAPS["weights"][0] + 1)
     try:
         tensors = load(blob)
     except (SafetensorError, ValueError, RuntimeError) as exc:
         raise WeightsError(path, f"corrupt tensor data ({exc})") from exc
     if tensors_sha256(tensors) != meta["tensors_sha256"]:
         raise WeightsError(path, "tensor checksum mismatch (file corrupt or edited)")
+    _check_finite(path, tensors)
     encoder = GeometricEncoder(config)
     expected = encoder.state_dict()
     missing = sorted(set(expected) - set(tensors))

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import InputError
+from byoc_cli.io.inputs import open_input
 
 CHECKPOINT_FORMAT = "byoc-train-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -123,10 +124,13 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         InputError: missing, unreadable or not a checkpoint.
     """
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such checkpoint")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError as exc:
-        raise InputError(path, "no such checkpoint") from exc
+        with open_input(path, "checkpoint") as f:
+            state = torch.load(f, map_location="cpu", weights_only=True)
+    except InputError:
+        raise
     except Exception as exc:  # truncated / corrupt archives raise various errors
         raise InputError(path, f"unreadable checkpoint ({type(exc).__name__})") from exc
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:

@@ -19,7 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from byoc_cli import limits
 from byoc_cli.errors import InputError
+from byoc_cli.io.inputs import read_input
 
 VARIANTS = ("byoc", "byoc-geo", "byoc-vis", "byoc-rot", "self-posed")
 #: variants with a visual branch (need colour images)
@@ -209,6 +211,7 @@ class TrainConfig:
         for name in ("lr", "adam_eps", "voxel_size", "temperature"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name} must be > 0, got {getattr(self, name)}")
+        problems += self._range_problems()
         if self.loss not in METRIC_LOSSES:
             problems.append(f"loss must be one of {', '.join(METRIC_LOSSES)}, got {self.loss!r}")
         if not 0 <= self.pos_margin < self.neg_margin <= 2:
@@ -222,6 +225,22 @@ class TrainConfig:
             problems.append(f"device must be auto, cpu or cuda, got {self.device!r}")
         if problems:
             raise ValueError("; ".join(problems))
+
+    def _range_problems(self) -> list[str]:
+        """The settings outside the ranges of :mod:`byoc_cli.limits` (the flags' ranges)."""
+        ranges = {
+            "lr": (0.0, limits.MAX_LR),
+            "voxel_size": (limits.MIN_VOXEL_SIZE, limits.MAX_VOXEL_SIZE),
+            "depth_scale": (limits.MIN_DEPTH_SCALE, limits.MAX_DEPTH_SCALE),
+        }
+        problems = []
+        for name, (low, high) in ranges.items():
+            value = getattr(self, name)
+            if value is None or (name != "depth_scale" and not value > 0):  # said above
+                continue
+            if not low <= value <= high:
+                problems.append(f"{name} must be in [{low:g}, {high:g}], got {value:g}")
+        return problems
 
     @property
     def uses_visual(self) -> bool:
@@ -313,13 +332,13 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as exc:
-        raise InputError(path, "no such file") from exc
-    except (OSError, UnicodeDecodeError) as exc:
+        raw = tomllib.loads(read_input(path, "config").decode("utf-8"))
+    except UnicodeDecodeError as exc:
         raise InputError(path, f"cannot read ({exc})") from exc
     except tomllib.TOMLDecodeError as exc:
         raise InputError(path, f"not valid TOML ({exc})") from exc
+    except RecursionError as exc:
+        raise InputError(path, "not valid TOML (nested too deeply)") from exc
     if set(raw) == {"train"} and isinstance(raw["train"], dict):
         raw = raw["train"]
     return check_keys(raw, path)
@@ -375,11 +394,13 @@ def config_from_json(path: str | Path) -> TrainConfig:
         InputError: missing or malformed file.
     """
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file (not a run folder?)")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as exc:
-        raise InputError(path, "no such file (not a run folder?)") from exc
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"cannot read run config ({exc})") from exc
+        data = json.loads(read_input(path, "config"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(path, f"cannot read run config ({type(exc).__name__})") from exc
+    if not isinstance(data, dict):
+        raise InputError(path, "cannot read run config (not a JSON object)")
     values = data.get("config", data)
     return TrainConfig(**check_keys(values, path))

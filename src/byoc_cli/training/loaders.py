@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
 from torch.utils.data import DataLoader
 
+from byoc_cli import limits
 from byoc_cli.errors import DatasetError
 from byoc_cli.training.config import TrainConfig
 from byoc_cli.training.data import (
@@ -104,6 +106,23 @@ def build_datasets(config: TrainConfig) -> tuple[PairDataset, PairDataset | None
     return train, val, names
 
 
+def loader_workers(requested: int) -> int:
+    """The data-loading worker processes to start for ``requested`` (``num_workers``):
+    at most :func:`byoc_cli.limits.max_workers` (2 per usable core), with a warning when
+    clamped, so a typo (``--num-workers 1000000``) cannot fork until the machine runs out
+    of memory. The data order does not depend on the number of workers.
+    """
+    bound = limits.max_workers()
+    if requested > bound:
+        warnings.warn(
+            f"num_workers {requested} is more than {bound} ({limits.WORKERS_PER_CORE} per "
+            f"core this process may use); starting {bound} data-loading workers",
+            stacklevel=2,
+        )
+        return bound
+    return requested
+
+
 class ResumableLoader:
     """Endless batches in the sampler's order, resumable at (epoch, batch).
 
@@ -128,7 +147,7 @@ class ResumableLoader:
             raise DatasetError(
                 config.rgbd_dir[0], "too few training pairs for one batch per process"
             )
-        workers = config.num_workers
+        workers = loader_workers(config.num_workers)
         self.loader = DataLoader(
             dataset,
             batch_size=self.per_rank,

@@ -13,18 +13,19 @@ PLOT_FILE = "training.png"
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:
     """Parse a metrics JSON-lines file; unparseable lines (a torn last line) are skipped."""
+    from byoc_cli.io.inputs import read_input
+
     records = []
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
+    if not Path(path).exists():
         return []
+    text = read_input(path, "report").decode("utf-8", errors="replace")
     for line in text.splitlines():
         line = line.strip()
         if not line:
             continue
         try:
             record = json.loads(line)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             continue
         if isinstance(record, dict):
             records.append(record)

@@ -39,6 +39,38 @@ def write_run_config(
     atomic_write_text(run_dir / CONFIG_FILE, json.dumps(doc, indent=2, sort_keys=True) + "\n")
 
 
+def has_progress(run_dir: Path) -> bool:
+    """True when a run folder holds a checkpoint or exported weights (work a new run must not
+    replace)."""
+    from byoc_cli.training.checkpoint import list_checkpoints
+
+    return bool(list_checkpoints(run_dir)) or (run_dir / WEIGHTS_FILE).exists()
+
+
+def start_run_folder(run_dir: Path) -> None:
+    """Make ``run_dir`` ready for a new (not resumed) run.
+
+    A folder whose run never got anywhere (``config.json`` but no checkpoint and no weights:
+    it failed or was killed before its first checkpoint) is the tool's own and is started
+    over: its configuration, metrics and plot are removed, so the same command (or the fixed
+    one) runs again. Cached self-posed pairs stay (they are reused only when made with the
+    same settings).
+
+    Raises:
+        InputError: ``run_dir`` holds a run with a checkpoint or weights.
+    """
+    if not (run_dir / CONFIG_FILE).exists():
+        return
+    if has_progress(run_dir):
+        raise InputError(
+            run_dir, "already holds a training run (use --resume to continue it, or another --out)"
+        )
+    from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE
+
+    for name in (METRICS_FILE, PLOT_FILE, CONFIG_FILE):  # config.json last: ours until gone
+        (run_dir / name).unlink(missing_ok=True)
+
+
 def read_run_config(run_dir: str | Path) -> TrainConfig:
     """The configuration saved in a run folder.
 
@@ -171,9 +203,11 @@ def _describe_initial_weights(config: TrainConfig) -> dict[str, Any]:
     from byoc_cli import __version__
 
     path = initial_weights_path(config)
+    from byoc_cli.io.inputs import read_input
+
     try:
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError:
+        digest = hashlib.sha256(read_input(path, "weights")).hexdigest()
+    except InputError:
         digest = None
     described: dict[str, Any] = {"file": path.name, "sha256": digest}
     if config.init_weights == SHIPPED:

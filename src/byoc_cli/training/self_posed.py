@@ -31,6 +31,7 @@ import torch
 
 from byoc_cli.errors import DatasetError, InputError
 from byoc_cli.io.atomic import atomic_write_text
+from byoc_cli.io.inputs import read_json_input
 from byoc_cli.training.checkpoint import (
     capture_rng_state,
     load_latest_checkpoint,
@@ -38,11 +39,13 @@ from byoc_cli.training.checkpoint import (
     save_checkpoint,
 )
 from byoc_cli.training.config import TrainConfig
+from byoc_cli.training.guard import check_finite, step_guard
 from byoc_cli.training.metric_loss import hardest_contrastive, info_nce, sample_matches
 from byoc_cli.training.pseudo_poses import (
     LearnedStart,
     PseudoPair,
     PseudoPoseConfig,
+    config_dict,
     estimate_pairs,
     frame_points,
     pairs_from_json,
@@ -124,8 +127,9 @@ def load_or_estimate_pairs(
     for n, sequence in enumerate(sequences):
         path = folder / f"{n:02d}-{sequence.name}.json"
         reused = _reusable(config, sequence, settings) if round_number == 1 else None
-        if path.exists():
-            record = json.loads(path.read_text(encoding="utf-8"))
+        cached = read_json_input(path) if path.exists() else None
+        if isinstance(cached, dict) and cached.get("config") == config_dict(settings):
+            record = cached
         elif reused is not None:
             record = reused
             atomic_write_text(path, json.dumps(record, indent=1))
@@ -170,14 +174,14 @@ def round_record(round_number: int, step: int, records: list[dict]) -> dict[str,
 
 def _reusable(config: TrainConfig, sequence: Any, settings: PseudoPoseConfig) -> dict | None:
     """The pairs of ``sequence`` in the run ``config.pairs_from``, if made with ``settings``."""
-    from byoc_cli.training.pseudo_poses import config_dict
-
     if not config.pairs_from:
         return None
     wanted = config_dict(settings)
     for path in sorted((Path(config.pairs_from) / PAIRS_DIR).glob("*.json")):
-        record = json.loads(path.read_text(encoding="utf-8"))
-        same_sequence = Path(record["sequence"]).resolve() == Path(sequence.root).resolve()
+        record = read_json_input(path)
+        if not isinstance(record, dict) or not {"sequence", "config"} <= record.keys():
+            raise InputError(path, "not a self-posed pairs record (pairs_from)")
+        same_sequence = Path(str(record["sequence"])).resolve() == Path(sequence.root).resolve()
         if same_sequence and record["config"] == wanted:
             return record
     return None
@@ -277,28 +281,22 @@ def build_optimizer(encoder: torch.nn.Module, config: TrainConfig) -> torch.opti
     )
 
 
-def _check_run_folder(run_dir: Path, resume: bool, config_file: str) -> None:
-    if not resume and (run_dir / config_file).exists():
-        raise InputError(
-            run_dir, "already holds a training run (use --resume to continue it, or another --out)"
-        )
-
-
 def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
     """Train (or continue) a ``self-posed`` run; returns a ``trainer.TrainResult``."""
     from byoc_cli.models.encoder import build_encoder
     from byoc_cli.training.plot import plot_metrics, read_metrics
     from byoc_cli.training.run_folder import (
-        CONFIG_FILE,
         WEIGHTS_FILE,
         load_initial_weights,
+        start_run_folder,
         truncate_metrics,
         write_run_config,
     )
     from byoc_cli.training.trainer import METRICS_FILE, PLOT_FILE, StepInfo, TrainResult
 
     run_dir = Path(config.out)
-    _check_run_folder(run_dir, resume, CONFIG_FILE)
+    if not resume:
+        start_run_folder(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     sequences = discover_training_sequences(config)
     data_names = [s.name for s in sequences]
@@ -396,10 +394,12 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
                 batch.append(
                     (frames[(s, pair.i)], frames[(s, pair.j)], torch.from_numpy(pair.T_i_j))
                 )
-            loss, values = training_step(encoder, batch, config, generator)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            with step_guard(encoder, step + 1, config.lr):
+                loss, values = training_step(encoder, batch, config, generator)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                check_finite(loss, encoder.parameters(), step + 1, config.lr)
             step += 1
             window.append(values)
             last = step == config.steps

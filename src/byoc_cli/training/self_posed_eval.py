@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from byoc_cli.training.config import TrainConfig
+from byoc_cli.training.plot import read_metrics
 from byoc_cli.training.pseudo_poses import frame_points
 
 #: feature-match recall of the validation (FCGF's protocol)
@@ -148,7 +149,7 @@ def export_checkpoint(
     metrics: dict[str, float] = {}
     metrics_path = Path(checkpoint).parents[1] / "metrics.jsonl"
     if metrics_path.exists():
-        records = [json.loads(line) for line in metrics_path.read_text().splitlines() if line]
+        records = read_metrics(metrics_path)
         vals = [r for r in records if r.get("kind") == "val" and r["step"] <= state["step"]]
         if vals:
             metrics = {

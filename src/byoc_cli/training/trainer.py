@@ -38,6 +38,7 @@ from byoc_cli.training.distributed import (
     init_distributed,
     mean_across,
 )
+from byoc_cli.training.guard import check_finite, step_guard
 from byoc_cli.training.loaders import ResumableLoader, build_datasets
 from byoc_cli.training.model import ByocModel, LossTerms
 from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics, read_metrics
@@ -45,9 +46,11 @@ from byoc_cli.training.run_folder import (
     CONFIG_FILE,
     WEIGHTS_FILE,
     export_weights,
+    has_progress,
     load_initial_weights,
     read_run_config,
     resume_config,
+    start_run_folder,
     truncate_metrics,
     write_run_config,
 )
@@ -228,7 +231,7 @@ def _train(
 ) -> TrainResult:
     device = info.device
     run_dir = Path(config.out)
-    if not resume and (run_dir / CONFIG_FILE).exists():
+    if not resume and (run_dir / CONFIG_FILE).exists() and has_progress(run_dir):
         raise InputError(
             run_dir, "already holds a training run (use --resume to continue it, or another --out)"
         )
@@ -269,6 +272,8 @@ def _train(
             )
         load_initial_weights(model.geometric, config)
     if info.is_main:
+        if not resume:
+            start_run_folder(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         write_run_config(run_dir, config, {"world_size": info.world_size, "data": data_names})
         truncate_metrics(run_dir / METRICS_FILE, step)
@@ -342,10 +347,12 @@ def _train(
     try:
         while step < config.steps:
             batch = next(batches)
-            terms: LossTerms = ddp_model(batch)
-            optimizer.zero_grad(set_to_none=True)
-            terms.total.backward()
-            optimizer.step()
+            with step_guard(model, step + 1, config.lr):
+                terms: LossTerms = ddp_model(batch)
+                optimizer.zero_grad(set_to_none=True)
+                terms.total.backward()
+                optimizer.step()
+                check_finite(terms.total, model.parameters(), step + 1, config.lr)
             step += 1
             losses = _loss_dict(terms)
             window.append(losses)

@@ -18,18 +18,15 @@ from typing import Any
 import numpy as np
 
 from byoc_cli.errors import DatasetError, InputError, ShapeError
+from byoc_cli.io.inputs import read_input
 
 #: Image file extensions of the folder layouts (ScanNet, Redwood).
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
-def read_text(path: Path, error: type[InputError] = DatasetError) -> str:
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError as exc:
-        raise error(path, "file not found") from exc
-    except OSError as exc:
-        raise error(path, f"cannot read ({exc.strerror or exc})") from exc
+def read_text(path: Path, error: type[InputError] = DatasetError, kind: str = "listing") -> str:
+    """The UTF-8 text of ``path`` (a regular file within the cap of ``kind``)."""
+    raw = read_input(path, kind, error)
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -72,12 +69,14 @@ def read_K(
     ``PinholeCameraParameters`` file's ``intrinsic``), or text holding a 3x3 matrix or
     ScanNet's 4x4 one (its top-left 3x3).
     """
-    text = read_text(path, error)
+    text = read_text(path, error, "intrinsics")
     if path.suffix.lower() == ".json" or text.lstrip().startswith("{"):
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise error(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+        except RecursionError as exc:
+            raise error(path, "not valid JSON (nested too deeply)") from exc
         if isinstance(data, dict) and "intrinsic_matrix" not in data and "intrinsic" in data:
             data = data["intrinsic"]
         values = data.get("intrinsic_matrix") if isinstance(data, dict) else None
@@ -128,8 +127,8 @@ def is_rigid(T: np.ndarray) -> bool:
 def read_pose(path: Path) -> np.ndarray | None:
     """4x4 camera-to-world text file, or None when absent, unreadable or not rigid."""
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError):
+        text = read_input(path, "matrix").decode("utf-8-sig")
+    except (InputError, UnicodeDecodeError):
         return None
     rows = number_rows(text)
     if rows is None or len(rows) != 4 or {len(r) for r in rows} != {4}:

@@ -11,7 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from byoc_cli.errors import DatasetError
+from byoc_cli.errors import DatasetError, InputError
+from byoc_cli.io.inputs import check_input
 
 #: Raw value that marks a missing measurement in 16-bit depth images (raw 7-Scenes).
 INVALID_DEPTH_16 = 65535
@@ -71,6 +72,10 @@ def open_image(path: Path, frame: int | None):
     """Open an image with pillow (lazily), mapping every failure to :class:`FrameError`."""
     from PIL import Image, UnidentifiedImageError
 
+    try:
+        check_input(path, "image")  # a FIFO or a device is never opened
+    except InputError as exc:
+        raise FrameError(path, exc.problem, frame) from exc
     try:
         return Image.open(path)
     except FileNotFoundError as exc:
