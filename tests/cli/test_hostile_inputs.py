@@ -136,6 +136,7 @@ def test_case2_num_workers_is_clamped_to_the_cores(shared_data, tmp_path, monkey
     monkeypatch.setattr(loaders, "DataLoader", recording)
     args = _train_args(shared_data, tmp_path / "run")
     args[args.index("--num-workers") + 1] = "1000000"
+    args.remove("--quiet")  # -q keeps only errors on stderr: the warning is wanted here
     result = _run(*args)
     assert result.exit_code == 0, result.stderr
     assert started == [2], started
