@@ -16,9 +16,12 @@ import os
 #: Voxel sizes in metres (features, ICP, merged models, FPFH); the weights spec's maximum.
 MIN_VOXEL_SIZE = 1e-4
 MAX_VOXEL_SIZE = 10.0
-#: TSDF voxel in metres: below a millimetre one depth frame allocates gigabytes of blocks.
-MIN_TSDF_VOXEL = 1e-3
+#: TSDF voxel in metres, and the largest truncation distance in voxels: the blocks a depth
+#: frame touches grow as truncation / voxel**3 (1 mm voxels, 4 mm truncation: 1.9 GB for five
+#: VGA frames), so both are bounded.
+MIN_TSDF_VOXEL = 2e-3
 MAX_TSDF_VOXEL = 1.0
+MAX_TRUNC_VOXELS = 16.0
 #: Other lengths in metres (distances, depths, truncations, thresholds).
 MIN_LENGTH = 1e-4
 MAX_LENGTH = 1e4

@@ -26,8 +26,9 @@ from click.testing import CliRunner
 from byoc_cli.cli.main import cli
 from byoc_cli.io import read_point_cloud, read_transform, write_ply
 
-#: address space of a subprocess that reads hostile input: a read past it fails, not the machine
-ADDRESS_SPACE = 3 << 30
+#: address space of a subprocess that reads hostile input (the issue's bar: no read of any
+#: input grows past 2 GB): a read past it fails the test, not the machine
+ADDRESS_SPACE = 2 << 30
 TIMEOUT_S = 120
 
 
@@ -58,7 +59,7 @@ def _limit_address_space() -> None:
 
 
 def _bounded(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    """``byoc ARGS`` in a subprocess with a timeout and a 3 GB address space."""
+    """``byoc ARGS`` in a subprocess with a timeout and a 2 GB address space."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.run(
         [sys.executable, "-m", "byoc_cli.cli.main", *map(str, args)],
@@ -525,3 +526,41 @@ def test_deeply_nested_json_and_toml_are_one_line_errors(pair, tmp_path):
     result = _run("register", depth, depth, "--features", "fpfh", "--intrinsics", intrinsics)
     line = _one_error_line(result)
     assert str(intrinsics) in line and "nested too deeply" in line, line
+
+
+def test_a_cloud_too_wide_for_its_voxels_names_the_file(pair):
+    """--scale 1e6 makes a 3 m box 3000 km wide: more voxels than the keys hold."""
+    for features in ("byoc", "fpfh"):
+        line = _one_error_line(_run("register", *pair, "--features", features, "--scale", "1e6"))
+        assert str(pair[0]) in line and "spans too many voxels" in line, line
+
+
+def test_a_first_frame_without_points_names_its_depth_file(shared_data):
+    data = shared_data / "rgbd" / "tum_fr1_xyz"
+    result = _run("odometry", "--rgbd-dir", data, "--features", "fpfh", "--max-depth", "1e-4")
+    line = _one_error_line(result)
+    assert str(data / "depth") in line and "fewer than 10 points within 0.0001 m" in line, line
+
+
+def test_a_truncation_of_many_tsdf_voxels_is_a_usage_error(tmp_path):
+    """--tsdf-voxel 0.002 --sdf-trunc 1 made open3d allocate blocks until malloc failed (a
+    traceback after 4.6 GB)."""
+    args = ["make-fragments", "--rgbd-dir", tmp_path, "--out", tmp_path / "o"]
+    _usage_error(_run(*args, "--tsdf-voxel", "0.002", "--sdf-trunc", "1"), "--sdf-trunc")
+    _usage_error(_run(*args, "--tsdf-voxel", "0.001"), "--tsdf-voxel")
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_gt_log_of_millions_of_short_lines_is_read_a_record_at_a_time(shared_data, tmp_path):
+    """A 64 MiB gt.log (the cap) of 2 million repeated short records grew to 2.4 GB before
+    its second record was refused; records are now parsed one at a time."""
+    import shutil
+
+    bench = tmp_path / "bench"
+    shutil.copytree(shared_data / "3dmatch" / "sample" / "3DMatch", bench)
+    gt_log = bench / "7-scenes-redkitchen-evaluation" / "gt.log"
+    record = b"0 4 5\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"
+    gt_log.write_bytes(record * ((64 << 20) // len(record)))
+    done = _bounded("eval-fmr", bench, "--method", "identity", "--quiet")
+    assert done.returncode == 1, done.stderr
+    assert f"{gt_log}: line 6: pair 0 4 repeats the record of line 1" in done.stderr

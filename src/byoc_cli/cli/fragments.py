@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from byoc_cli import limits
 from byoc_cli.cli.errors import CliError, handle_errors
 from byoc_cli.cli.options import (
     DEPTH_SCALE,
@@ -143,6 +144,12 @@ def make_fragments(
     if sdf_trunc <= tsdf_voxel:
         raise click.BadParameter(
             f"must exceed --tsdf-voxel ({tsdf_voxel})", param_hint="'--sdf-trunc'"
+        )
+    if sdf_trunc > limits.MAX_TRUNC_VOXELS * tsdf_voxel:
+        raise click.BadParameter(
+            f"must be at most {limits.MAX_TRUNC_VOXELS:g} times --tsdf-voxel "
+            f"({limits.MAX_TRUNC_VOXELS * tsdf_voxel:g} m): the memory grows with it",
+            param_hint="'--sdf-trunc'",
         )
     start = time.perf_counter()
     sequence = _load_sequence(rgbd_dir, intrinsics, depth_scale)

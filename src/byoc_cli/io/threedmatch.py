@@ -28,9 +28,12 @@ Depends on numpy and :mod:`byoc_cli.errors` only.
 
 from __future__ import annotations
 
+import io
+import itertools
 import math
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -134,10 +137,11 @@ class PreparedPair(NamedTuple):
 # ================================================================== parsing
 
 
-def _read_lines(path: Path) -> list[str]:
+def _read_lines(path: Path) -> Iterator[str]:
+    """The lines of ``path``, one at a time (millions of short lines never exist at once)."""
     raw = read_input(path, "benchmark")
     try:
-        return raw.decode("utf-8-sig").splitlines()
+        return iter(io.StringIO(raw.decode("utf-8-sig"), newline=None))
     except UnicodeDecodeError as exc:
         raise InputError(path, "not a text file") from exc
 
@@ -171,12 +175,11 @@ def _header(path: Path, number: int, line: str) -> tuple[int, int, int]:
     return i, j, n
 
 
-def _records(path: Path, rows: int) -> list[tuple[int, tuple[int, int, int], np.ndarray]]:
-    """``[(header line, (i, j, n), (rows, rows) matrix)]``; blank lines are skipped."""
-    numbered = [(k, line) for k, line in enumerate(_read_lines(path), start=1) if line.strip()]
-    records = []
-    for start in range(0, len(numbered), rows + 1):
-        chunk = numbered[start : start + rows + 1]
+def _records(path: Path, rows: int) -> Iterator[tuple[int, tuple[int, int, int], np.ndarray]]:
+    """``(header line, (i, j, n), (rows, rows) matrix)`` one record at a time, in file order;
+    blank lines are skipped."""
+    numbered = ((k, line) for k, line in enumerate(_read_lines(path), start=1) if line.strip())
+    while chunk := list(itertools.islice(numbered, rows + 1)):
         number, line = chunk[0]
         header = _header(path, number, line)
         if len(chunk) < rows + 1:
@@ -189,8 +192,7 @@ def _records(path: Path, rows: int) -> list[tuple[int, tuple[int, int, int], np.
             [_numbers(path, k, text, rows, "matrix row") for k, text in chunk[1:]],
             dtype=np.float64,
         )
-        records.append((number, header, matrix))
-    return records
+        yield number, header, matrix
 
 
 def read_gt_log(path: str | os.PathLike[str]) -> list[GtRecord]:

@@ -12,7 +12,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
-from byoc_cli.errors import RegistrationError
+from byoc_cli.errors import RegistrationError, ShapeError
 from byoc_cli.geometry import voxelize
 
 MIN_POINTS = 3
@@ -57,7 +57,14 @@ class FeatureExtractor(Protocol):
 def _voxelize_checked(points: torch.Tensor, voxel_size: float, label: str):
     """Voxelise, refusing what cannot be registered (few voxels, a voxel larger than the
     cloud, collinear points); raises :class:`RegistrationError` starting with ``label``."""
-    grid = voxelize(points, voxel_size)
+    try:
+        grid = voxelize(points, voxel_size)
+    except ShapeError as exc:  # more voxels across than the keys hold
+        extent = float((points.max(dim=0).values - points.min(dim=0).values).max())
+        raise RegistrationError(
+            f"{label}: the cloud ({extent:.3g} m across) spans too many voxels of "
+            f"{voxel_size:g} m; is the unit (--scale) right?"
+        ) from exc
     kept = grid.point_index.numel()
     if kept < MIN_POINTS:
         raise RegistrationError(

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from byoc_cli import limits
 from byoc_cli.errors import ShapeError, require_open3d
 from byoc_cli.io.rgbd import RGBDSequence
 
@@ -162,6 +163,11 @@ def fuse_fragment(
     depth_trunc = _check_positive("depth_trunc", depth_trunc)
     if sdf_trunc <= voxel_size:
         raise ValueError(f"sdf_trunc ({sdf_trunc}) must exceed voxel_size ({voxel_size})")
+    if sdf_trunc > limits.MAX_TRUNC_VOXELS * voxel_size:
+        raise ValueError(
+            f"sdf_trunc ({sdf_trunc}) must be at most {limits.MAX_TRUNC_VOXELS:g} voxels "
+            f"({limits.MAX_TRUNC_VOXELS * voxel_size:g} m): the memory grows with it"
+        )
     if int(min_observations) < 1:
         raise ValueError(f"min_observations must be >= 1, got {min_observations}")
 

@@ -196,10 +196,15 @@ def _tracking_pass(
     stats: dict[str, int],
     progress: Callable[[int, int], None],
     key_clouds: dict[int, posegraph.PreparedCloud],
+    first: str = "the sequence",
 ) -> _Tracked:
     key_cloud = load(0)
     if not posegraph.enough_points(key_cloud):
-        raise RegistrationError(f"the first frame has fewer than {posegraph.MIN_ICP_POINTS} points")
+        raise RegistrationError(
+            f"{first}: the first frame has fewer than {posegraph.MIN_ICP_POINTS} points within "
+            f"{config.max_depth:g} m at an ICP voxel of {config.voxel_size:g} m (check the depth "
+            "scale, the maximum depth and the ICP voxel)"
+        )
     key_clouds[0] = key_cloud
     tr = _Tracked([np.eye(4)], [0], [np.eye(4)], [0], [0], [], [], [1.0])
     velocity = np.eye(4)
@@ -340,7 +345,8 @@ def estimate_trajectory(
     stats.update(loops_tried=0, loops_kept=0, loops_pruned=0)
     key_clouds: dict[int, posegraph.PreparedCloud] = {}
     started = time.perf_counter()
-    tr = _tracking_pass(load, len(frames), start_fn, config, stats, report, key_clouds)
+    first = str(sequence.frames[frames[0]].depth_path)
+    tr = _tracking_pass(load, len(frames), start_fn, config, stats, report, key_clouds, first)
     timings["track"] = time.perf_counter() - started - timings["load"]
     stats["keyframes"] = len(tr.keyframes)
     if config.pose_graph and len(tr.keyframes) > 2:

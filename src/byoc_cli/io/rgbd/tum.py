@@ -12,8 +12,11 @@ from the sequence up to the root says ``freiburg1``/``fr1`` etc.; optional ``gro
 
 from __future__ import annotations
 
+import array
+import io
 import math
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +37,10 @@ TUM_INTRINSICS = {
 _FREIBURG = re.compile(r"(?<![a-z0-9])(?:freiburg|fr)_?([123])(?![0-9])", re.IGNORECASE)
 
 
-def _read_tum_list(path: Path, skipped: list[SkippedFrame]) -> list[tuple[float, list[str]]]:
-    """``timestamp value...`` lines (``#`` comments) -> ``[(stamp, values)]`` sorted by stamp."""
-    entries = []
-    for number, line in enumerate(read_text(path).splitlines(), start=1):
+def _tum_lines(path: Path, skipped: list[SkippedFrame]) -> Iterator[tuple[float, list[str]]]:
+    """``(stamp, values)`` of the ``timestamp value...`` lines (``#`` comments), in file order,
+    one at a time (a file of millions of short lines never exists as a list of lines)."""
+    for number, line in enumerate(io.StringIO(read_text(path), newline=None), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -49,9 +52,31 @@ def _read_tum_list(path: Path, skipped: list[SkippedFrame]) -> list[tuple[float,
         if len(fields) < 2 or not math.isfinite(stamp):
             skipped.append(SkippedFrame(f"{path.name}:{number}", "unparseable line"))
             continue
-        entries.append((stamp, fields[1:]))
-    entries.sort(key=lambda e: e[0])
-    return entries
+        yield stamp, fields[1:]
+
+
+def _read_tum_list(path: Path, skipped: list[SkippedFrame]) -> list[tuple[float, list[str]]]:
+    """``timestamp value...`` lines (``#`` comments) -> ``[(stamp, values)]`` sorted by stamp."""
+    return sorted(_tum_lines(path, skipped), key=lambda e: e[0])
+
+
+def _read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``groundtruth.txt`` -> ``(stamps (N,), values (N, 7))`` float64 sorted by stamp (a value
+    that is not a number is NaN; lines with fewer than 7 values are dropped). Kept as two
+    arrays, 64 bytes a line: a pose is made only for the frames that use it."""
+    stamps, values = array.array("d"), array.array("d")
+    for stamp, fields in _tum_lines(path, []):  # bad ground-truth lines only cost poses
+        if len(fields) < 7:
+            continue
+        stamps.append(stamp)
+        for text in fields[:7]:
+            try:
+                values.append(float(text))
+            except ValueError:
+                values.append(math.nan)
+    order = np.argsort(np.frombuffer(stamps, dtype=np.float64), kind="stable")
+    table = np.frombuffer(values, dtype=np.float64).reshape(-1, 7)
+    return np.frombuffer(stamps, dtype=np.float64)[order], table[order]
 
 
 def _associate(a: np.ndarray, b: np.ndarray, max_difference: float) -> dict[int, int]:
@@ -133,18 +158,10 @@ def _tum_frames(
                 )
             )
 
-    gt_t = np.zeros(0)
-    gt_poses: list[np.ndarray | None] = []
+    gt_t, gt_values = np.zeros(0), np.zeros((0, 7))
     gt_path = folder / "groundtruth.txt"
     if options.read_poses and gt_path.is_file():
-        gt_skipped: list[SkippedFrame] = []  # bad ground-truth lines only cost poses
-        entries = [e for e in _read_tum_list(gt_path, gt_skipped) if len(e[1]) >= 7]
-        gt_t = np.array([e[0] for e in entries], dtype=np.float64)
-        for _stamp, values in entries:
-            try:
-                gt_poses.append(_quaternion_pose([float(v) for v in values[:7]]))
-            except ValueError:
-                gt_poses.append(None)
+        gt_t, gt_values = _read_groundtruth(gt_path)
 
     frames = []
     for i, (stamp, values) in enumerate(depth_list):
@@ -160,7 +177,7 @@ def _tum_frames(
             else:
                 skipped.append(SkippedFrame(rgb_list[match[i]][1][0], "colour file not found"))
         k = _nearest(gt_t, stamp, pose_tolerance)
-        pose = gt_poses[k] if k is not None else None
+        pose = _quaternion_pose(list(gt_values[k])) if k is not None else None
         frames.append(RGBDFrame(i, depth_path, color_path, pose, stamp))
     return frames, skipped
 
