@@ -78,8 +78,8 @@ register_options = apply(
         type=finite_float(0, 1),
         default=DEFAULT_MIN_CONFIDENCE,
         help="Exit 3 when the confidence, the calibrated probability that T is right, is "
-        "below this (the default gives at least 99 % precision on the development pairs; "
-        "0 accepts every result).",
+        "below this (the default keeps 95 % of the right results of the development pairs, "
+        "docs/registering.md; 0 accepts every result).",
     ),
     float_option(
         "--scale",

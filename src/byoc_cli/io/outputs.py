@@ -40,6 +40,7 @@ from typing import Any
 
 from byoc_cli.errors import InputError
 from byoc_cli.io.atomic import STAGER, temp_prefix, temp_sibling, write_problem
+from byoc_cli.io.inputs import file_kind
 
 __all__ = [
     "OutputSet",
@@ -86,18 +87,6 @@ def _inside(path: Path, folder: Path) -> bool:
     except ValueError:
         return False
     return True
-
-
-def _kind(mode: int) -> str:
-    if stat.S_ISDIR(mode):
-        return "a folder"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "a device"
-    if stat.S_ISFIFO(mode):
-        return "a FIFO"
-    if stat.S_ISSOCK(mode):
-        return "a socket"
-    return "not a regular file"
 
 
 def _probe(target: Path, shown: Path) -> None:
@@ -182,7 +171,7 @@ class OutputSet:
         except OSError as exc:
             raise InputError(shown, write_problem(exc, target)) from exc
         if st is not None and not stat.S_ISREG(st.st_mode):
-            raise InputError(shown, f"is {_kind(st.st_mode)}; refusing to write over it")
+            raise InputError(shown, f"is {file_kind(st.st_mode)}; refusing to write over it")
         if st is not None:
             for source, identity in self._inputs:
                 if identity == (st.st_dev, st.st_ino):
