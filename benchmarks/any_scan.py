@@ -8,10 +8,12 @@ process with the Python API and the CLI's defaults (`byoc_cli.register`, the sam
 `byoc register A B`), and judged against the ground truth: rotation within 5 deg, translation
 within 10 cm times the scale (scaled copies: 10 % of the scan's extent as well).
 
-Prints one row per variant and method: pairs right, median rotation / translation error, the
-median voxel chosen, and time against the unscaled pair's (scaled copies).
+Prints one row per variant and method: pairs right, wrong results that would exit 0 (confidence
+at or above the default --min-confidence), median rotation / translation error, the median
+voxel chosen, and time against the unscaled pair's (scaled copies). Methods: byoc, fpfh, and
+byoc+fpfh (the learned features with the FPFH fallback below the default --min-confidence).
 
-Usage: python benchmarks/any_scan.py [--methods byoc fpfh] [--variants scale thin noise]
+Usage: python benchmarks/any_scan.py [--methods byoc fpfh byoc+fpfh] [--variants scale thin noise]
     [--weights W.safetensors] [--json OUT.json]
 """
 
@@ -30,6 +32,7 @@ import numpy as np
 
 from byoc_cli.api import Registrar, load_cloud
 from byoc_cli.io.threedmatch import read_gt_log
+from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("BYOC_SHARED_DATA", ROOT.parent / "shared" / "data"))
@@ -128,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     data = pairs()
     rows = []
     for method in args.methods:
-        weights = args.weights if method == "byoc" else None
-        registrar = Registrar(method, weights=weights, device="cpu")
+        features, _, fallback = method.partition("+")
+        weights = args.weights if features == "byoc" else None
+        registrar = Registrar(features, weights=weights, device="cpu", fallback=fallback or None)
         base_time: dict[str, float] = {}
         for label, recipe in variants(args.variants):
             cells = []
@@ -152,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
                         confidence=out["confidence"],
                         right=rot < 5.0 and trans < 0.10 * s,
                         right_extent=rot < 5.0 and trans < 0.10 * extent,
+                        passed=out["confidence"] >= DEFAULT_MIN_CONFIDENCE,
                     )
                 if label == "original":
                     base_time[name] = out["seconds"]
@@ -164,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
                 return statistics.median(c[key] for c in cs) if cs else float("nan")
 
             print(
-                f"{method:5s} {label:16s} right {sum(c['right'] for c in cells)}/{len(cells)}"
+                f"{method:9s} {label:16s} right {sum(c['right'] for c in cells)}/{len(cells)}"
+                f"  wrong exit 0 {sum(c.get('passed', False) and not c['right'] for c in cells)}"
                 f"  rot {med('rot_deg'):6.2f} deg  trans {100 * med('trans'):6.1f} cm"
                 f"  voxel {100 * med('voxel'):5.2f} cm  time x{med('time_ratio'):.2f}"
                 f"  refused {len(cells) - len(ok)}",

@@ -48,15 +48,18 @@ SAMPLE = DATA / "3dmatch" / "sample"
 BENCH = DATA / "3dmatch" / "benchmarks"
 #: (sequence, frame distances)
 RGBD_SETS = (
-    ("tum_fr1_desk_full", (10, 20, 40, 60)),
+    ("tum_fr1_desk_full", (10, 20, 30, 40, 50, 60)),
     ("tum_fr3_cabinet", (1, 2, 4, 8)),
-    ("realsense_tabletop", (5, 15, 25)),
+    ("realsense_tabletop", (5, 15, 25, 35)),
     ("tum_fr1_rpy", (20, 60)),
-    ("tum_fr1_desk", (2, 4)),
+    ("tum_fr1_desk", (2, 4, 8)),
 )
 ROT_DEG, TRANS_M = 5.0, 0.10
 #: a wrong result that is not a near miss: beyond 15 deg or 30 cm (or no right answer)
 GROSS_DEG, GROSS_M = 15.0, 0.30
+#: FPFH runs on the pairs whose learned confidence is below this (the fallback runs below the
+#: gate, under 0.5 with any model fitted so far)
+FALLBACK_MARGIN = 0.7
 #: the share of right results the default threshold keeps
 RECALL = 0.95
 
@@ -125,7 +128,8 @@ def variant_pairs() -> Iterator[tuple]:
     for name, _, src, tgt, T, _ in fragment_pairs():
         if T is not None and name in ("kitchen:0-4", "kitchen:4-7", "kitchen:7-21"):
             bases.append((name, src, tgt, T))
-    recipes = [("x0.01", {"scale": 0.01}), ("x100", {"scale": 100.0})]
+    recipes = [(f"x{s:g}", {"scale": s}) for s in (0.01, 0.1, 10.0, 100.0)]
+    recipes += [("thin8both", {"thin": 8, "both": True})]
     for k in (2, 4):
         recipes += [(f"thin{k}both", {"thin": k, "both": True})]
         recipes += [(f"thin{k}src", {"thin": k, "both": False})]
@@ -175,13 +179,46 @@ def negative_pairs() -> Iterator[tuple]:
         yield f"tabletop-onto-cabinet:{n}", "negative", a.source.load, b.target.load, None, 1.0
 
 
-def collect(out: Path, features: str, part: tuple[int, int], groups: list[str]) -> None:
+def _result(registrar, src: np.ndarray, tgt: np.ndarray, **settings) -> dict:
+    """One registration's record: its transform, cues, confidence and seconds (or refusal)."""
+    start = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = registrar.register(src, tgt, **settings)
+    except Exception as exc:  # a refusal: never exit 0, nothing to calibrate
+        return {"refused": str(exc), "seconds": time.perf_counter() - start}
+    return {
+        "T": result.T_tgt_src.tolist(),
+        "cues": result.cues,
+        "confidence": result.confidence,
+        "voxel": result.voxel_size,
+        "seconds": time.perf_counter() - start,
+    }
+
+
+def _refined_truth(registrar, src, tgt, T_gt: np.ndarray) -> np.ndarray:
+    """The ground truth refined by the multiscale ICP on the full clouds: the alignment the
+    data support near the truth (as FCGF refines KITTI's GPS poses with ICP)."""
+    import torch
+
+    from byoc_cli.pipeline.refine import refine_multiscale
+
+    choice = registrar.choose_voxel(src, tgt)
+    refined = refine_multiscale(
+        torch.from_numpy(src), torch.from_numpy(tgt), torch.from_numpy(T_gt), choice.refine_voxel
+    )
+    return refined.T_tgt_src.numpy()
+
+
+def collect(out: Path, part: tuple[int, int], groups: list[str]) -> None:
     from byoc_cli.api import Registrar
 
     done = set()
     if out.exists():
         done = {json.loads(line)["name"] for line in out.read_text().splitlines() if line}
-    registrar = Registrar(features, device="cpu")
+    byoc = Registrar("byoc", device="cpu", fallback=None)
+    fpfh = Registrar("fpfh", device="cpu")
     sources = (rgbd_pairs(), fragment_pairs(), variant_pairs(), negative_pairs())
     count = -1
     with out.open("a") as file:
@@ -192,91 +229,170 @@ def collect(out: Path, features: str, part: tuple[int, int], groups: list[str]) 
                     continue
                 if groups and group not in groups:
                     continue
-                record = {"name": name, "group": group, "features": features, "scale": scale}
-                start = time.perf_counter()
-                try:
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")
-                        result = registrar.register(load_src(), load_tgt())
-                except Exception as exc:  # a refusal: never exit 0, nothing to calibrate
-                    record.update(refused=str(exc), right=False)
+                record = {"name": name, "group": group, "scale": scale}
+                src, tgt = load_src(), load_tgt()
+                record["byoc"] = _result(byoc, src, tgt)
+                # FPFH with the learned path's refinement: what the fallback runs, which it
+                # does only below the gate (with a margin for the refitted model)
+                if record["byoc"].get("confidence", 0.0) < FALLBACK_MARGIN:
+                    record["fpfh"] = _result(fpfh, src, tgt, refine="multiscale")
                 else:
-                    record.update(cues=result.cues, confidence=result.confidence)
-                    record["voxel"] = result.voxel_size / scale
-                    if T_gt is None:
-                        record["right"] = False
-                    else:
-                        T_gt = np.array(T_gt, dtype=np.float64)
-                        T_gt[:3, 3] *= scale
-                        rot, trans = errors(result.T_tgt_src, T_gt)
-                        record.update(rot_deg=rot, trans_m=trans / scale)
-                        record["right"] = rot < ROT_DEG and trans / scale < TRANS_M
-                record["seconds"] = time.perf_counter() - start
+                    record["fpfh"] = {"skipped": f"learned confidence >= {FALLBACK_MARGIN}"}
+                if T_gt is not None:
+                    T_gt = np.array(T_gt, dtype=np.float64)
+                    T_gt[:3, 3] *= scale
+                    record["T_gt"] = T_gt.tolist()
+                    try:
+                        record["T_gt_refined"] = _refined_truth(byoc, src, tgt, T_gt).tolist()
+                    except Exception as exc:
+                        record["T_gt_refined_error"] = str(exc)
                 file.write(json.dumps(record) + "\n")
                 file.flush()
                 print(
-                    f"{name:40s} right={record['right']!s:5s} "
-                    f"p={record.get('confidence', float('nan')):.3f}",
+                    f"{name:40s} "
+                    + " ".join(
+                        f"{k}={record[k].get('confidence', float('nan')):.3f}"
+                        for k in ("byoc", "fpfh")
+                    ),
                     flush=True,
                 )
 
 
-def fit(paths: list[Path]) -> None:
-    from byoc_cli.pipeline.confidence import FEATURES, cue_matrix, fit_logistic, sigmoid
+KINDS = ("byoc", "fpfh")
 
+
+def _load(paths: list[Path]) -> list[dict]:
     records = {}  # a later file's record of a pair replaces an earlier one
     for p in paths:
         for line in p.read_text().splitlines():
             if line:
                 records[json.loads(line)["name"]] = json.loads(line)
-    records = list(records.values())
-    scored = [r for r in records if "cues" in r]
-    refused = [r for r in records if "refused" in r]
-    X = cue_matrix([r["cues"] for r in scored])
-    y = np.array([r["right"] for r in scored], dtype=np.float64)
-    groups = np.array([r["group"] for r in scored])
-    print(
-        f"{len(records)} pairs: {len(scored)} registered ({int(y.sum())} right), "
-        f"{len(refused)} refused"
-    )
-    # out-of-group predictions: each group scored by a model fitted without it
-    p_cv = np.zeros(len(y))
+    return list(records.values())
+
+
+def _judge(record: dict, kind: str, truth: str) -> dict | None:
+    """``kind``'s result of a pair judged against ``truth`` (``"gt"`` or ``"refined"``);
+    None when it was refused."""
+    result = record[kind]
+    if "cues" not in result:
+        return None
+    T_true = record.get("T_gt_refined" if truth == "refined" else "T_gt", record.get("T_gt"))
+    if T_true is None:
+        return {"right": False, "gross": True}
+    rot, trans = errors(np.array(result["T"]), np.array(T_true))
+    trans /= record["scale"]
+    return {
+        "right": rot < ROT_DEG and trans < TRANS_M,
+        "gross": rot > GROSS_DEG or trans > GROSS_M,
+    }
+
+
+def _cross_validated(records: list[dict], kind: str, truth: str):
+    """Out-of-group probabilities of ``kind``'s results (nan where refused), the labels and
+    the coefficients fitted on all."""
+    from byoc_cli.pipeline.confidence import cue_matrix, fit_logistic, sigmoid
+
+    judged = [_judge(r, kind, truth) for r in records]
+    have = np.array([j is not None for j in judged])
+    X = cue_matrix([r[kind]["cues"] for r, j in zip(records, judged, strict=True) if j])
+    y = np.array([j["right"] for j in judged if j], dtype=np.float64)
+    groups = np.array([r["group"] for r, j in zip(records, judged, strict=True) if j])
+    p = np.zeros(len(y))
     for g in np.unique(groups):
         held = groups == g
         w = fit_logistic(X[~held], y[~held])
-        p_cv[held] = sigmoid(X[held] @ w[:-1] + w[-1])
-    w = fit_logistic(X, y)
-    print("coefficients (features, then bias):")
-    for name, value in zip([*FEATURES, "bias"], w, strict=True):
-        print(f"    {name:22s} {value:+.4f}")
-    gross = np.array([_gross(r) for r in scored])
+        p[held] = sigmoid(X[held] @ w[:-1] + w[-1])
+    p_all = np.full(len(records), np.nan)
+    p_all[have] = p
+    return p_all, judged, fit_logistic(X, y)
+
+
+def _policy(p_byoc, p_fpfh, judged_byoc, judged_fpfh, threshold: float, fallback: bool):
+    """Per pair: (confidence, right, gross) of what the default returns (None: refused)."""
+    out = []
+    for pb, pf, jb, jf in zip(p_byoc, p_fpfh, judged_byoc, judged_fpfh, strict=True):
+        pick = (pb, jb) if jb is not None else (-1.0, None)
+        if fallback and not pick[0] >= threshold and jf is not None and pf > pick[0]:
+            pick = (pf, jf)
+        out.append(None if pick[1] is None else (pick[0], pick[1]["right"], pick[1]["gross"]))
+    return out
+
+
+def _table(records, p_byoc, p_fpfh, judged_byoc, judged_fpfh, fallback: bool):
     print(
-        "\nthreshold  precision  recall  gross-free  (grouped cross-validation; exit 0 = p >= "
-        "threshold; gross-free: share of exit 0 within 15 deg and 30 cm)"
+        "threshold  precision  recall  gross-free  right  exit0  (grouped cross-validation; "
+        "recall: of the pairs whose returned transform is right)"
     )
     best = None
     for t in np.round(np.arange(0.05, 1.0, 0.05), 2):
-        passed = p_cv >= t
-        tp = float((passed & (y == 1)).sum())
+        picks = [x for x in _policy(p_byoc, p_fpfh, judged_byoc, judged_fpfh, t, fallback) if x]
+        passed = np.array([c >= t for c, _, _ in picks])
+        right = np.array([r for _, r, _ in picks])
+        gross = np.array([g for _, _, g in picks])
+        tp = float((passed & right).sum())
         precision = tp / max(passed.sum(), 1)
-        recall = tp / max(y.sum(), 1)
+        recall = tp / max(right.sum(), 1)
         clean = 1.0 - float((passed & gross).sum()) / max(passed.sum(), 1)
-        print(f"  {t:.2f}     {100 * precision:6.2f}    {100 * recall:6.2f}    {100 * clean:6.2f}")
+        print(
+            f"  {t:.2f}     {100 * precision:6.2f}    {100 * recall:6.2f}    {100 * clean:6.2f}"
+            f"  {int(right.sum()):5d}  {int(passed.sum()):5d}"
+        )
         if recall >= RECALL:
-            best = (float(t), precision, recall, clean)
-    print(f"\nthe highest threshold that keeps {100 * RECALL:g} % of the right results:", best)
-    print("\nreliability (cross-validated p, bins of 0.1): bin  pairs  predicted  right")
-    for lo in np.arange(0, 1.0, 0.1):
-        inside = (p_cv >= lo) & (p_cv < lo + 0.1 + (1e-9 if lo >= 0.9 else 0))
-        if inside.any():
-            print(
-                f"  {lo:.1f}-{lo + 0.1:.1f}  {int(inside.sum()):5d}   "
-                f"{p_cv[inside].mean():.3f}     {y[inside].mean():.3f}"
-            )
-    worst = sorted(zip(p_cv, y, [r["name"] for r in scored], strict=True), reverse=True)
-    print("\nwrong results with the highest cross-validated p:")
-    for p, _, name in [t for t in worst if t[1] == 0][:8]:
-        print(f"  {p:.3f} {name}")
+            best = (float(t), round(precision, 4), round(recall, 4), round(clean, 4))
+    print(f"the highest threshold that keeps {100 * RECALL:g} % of the right results:", best)
+    return best
+
+
+def fit(paths: list[Path], truth: str) -> None:
+    from byoc_cli.pipeline.confidence import FEATURES
+
+    records = _load(paths)
+    print(f"{len(records)} pairs, judged against {truth} truth")
+    moved = [r for r in records if "T_gt_refined" in r]
+    shifts = [errors(np.array(r["T_gt_refined"]), np.array(r["T_gt"])) for r in moved]
+    far = [
+        (r["name"], rot, tr / r["scale"])
+        for r, (rot, tr) in zip(moved, shifts, strict=True)
+        if rot > 2.0 or tr / r["scale"] > 0.04
+    ]
+    print(
+        f"ground truth refined on the data: {len(far)} of {len(moved)} moved beyond 2 deg or 4 cm:",
+        ", ".join(f"{n} ({a:.1f} deg, {100 * b:.1f} cm)" for n, a, b in far[:12]),
+        "..." if len(far) > 12 else "",
+    )
+    ps, judged = {}, {}
+    for kind in KINDS:
+        ps[kind], judged[kind], w = _cross_validated(records, kind, truth)
+        n = sum(j is not None for j in judged[kind])
+        right = sum(bool(j and j["right"]) for j in judged[kind])
+        print(f"\n{kind}: {n} registered ({right} right), {len(records) - n} refused")
+        print("coefficients (features, then bias):")
+        print("    (" + ", ".join(f"{v:.4f}" for v in w) + ")")
+        for name, value in zip([*FEATURES, "bias"], w, strict=True):
+            print(f"    {name:22s} {value:+.4f}")
+    for fallback in (False, True):
+        print(f"\n== {'learned, then FPFH below the threshold' if fallback else 'learned only'}")
+        best = _table(records, ps["byoc"], ps["fpfh"], judged["byoc"], judged["fpfh"], fallback)
+        if best is None:
+            continue
+        picks = _policy(ps["byoc"], ps["fpfh"], judged["byoc"], judged["fpfh"], best[0], fallback)
+        print("reliability at that threshold (bins of 0.1): bin  pairs  predicted  right")
+        conf = np.array([x[0] for x in picks if x])
+        right = np.array([x[1] for x in picks if x], dtype=np.float64)
+        for lo in np.arange(0, 1.0, 0.1):
+            inside = (conf >= lo) & (conf < lo + 0.1 + (1e-9 if lo >= 0.9 else 0))
+            if inside.any():
+                print(
+                    f"  {lo:.1f}-{lo + 0.1:.1f}  {int(inside.sum()):5d}   "
+                    f"{conf[inside].mean():.3f}     {right[inside].mean():.3f}"
+                )
+        wrong = sorted(
+            (x[0], r["name"]) for x, r in zip(picks, records, strict=True) if x and not x[1]
+        )
+        print(
+            "wrong results with the highest p:",
+            ", ".join(f"{n} {p:.3f}" for p, n in wrong[::-1][:8]),
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -284,17 +400,17 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect")
     c.add_argument("--out", type=Path, required=True)
-    c.add_argument("--features", default="byoc")
     c.add_argument("--part", default="1/1", help="I/N: every N-th pair from the I-th")
     c.add_argument("--groups", nargs="*", default=[], help="only these groups (default: all)")
     f = sub.add_parser("fit")
     f.add_argument("paths", type=Path, nargs="+")
+    f.add_argument("--truth", choices=("gt", "refined"), default="refined")
     args = parser.parse_args(argv)
     if args.command == "collect":
         part = tuple(int(x) for x in args.part.split("/"))
-        collect(args.out, args.features, part, args.groups)
+        collect(args.out, part, args.groups)
     else:
-        fit(args.paths)
+        fit(args.paths, args.truth)
     return 0
 
 

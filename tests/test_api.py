@@ -192,3 +192,24 @@ def test_a_cloud_refined_in_several_pairs_is_prepared_once(monkeypatch):
     assert len(built) == levels  # b is the target again: reused
     registrar.match(fb, fc, refine="multiscale")
     assert len(built) == 2 * levels  # c as a target: built once
+
+
+def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
+    src_mm = _cube(1) * 1000
+    tgt, T = _moved(_cube(1))
+    tgt_mm = tgt * 1000
+    plain = byoc_cli.Registrar(fallback=None).register(src_mm, tgt_mm, seed=1)
+    assert plain.fallback is None
+    never = byoc_cli.Registrar(fallback="fpfh", fallback_below=0.0).register(src_mm, tgt_mm, seed=1)
+    assert never.fallback is None and np.array_equal(never.T_tgt_src, plain.T_tgt_src)
+    both = byoc_cli.Registrar(fallback="fpfh", fallback_below=1.0).register(src_mm, tgt_mm, seed=1)
+    note = both.fallback
+    assert note["features"] == "fpfh" and note["learned_confidence"] == plain.confidence
+    assert note["confidence"] is not None and note["seconds"] > 0
+    assert both.confidence == max(plain.confidence, note["confidence"])
+    assert both.features == ("fpfh" if note["used"] else "byoc")
+    assert note["used"] == (note["confidence"] > plain.confidence)
+    assert both.timings["fallback"] == note["seconds"] and "fallback" not in plain.timings
+    assert np.abs(both.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm, either way
+    with pytest.raises(ValueError, match="fallback"):
+        byoc_cli.Registrar("fpfh", fallback="fpfh")

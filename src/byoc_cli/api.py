@@ -43,6 +43,7 @@ from byoc_cli.api_types import (
     load_cloud,
     load_weights,
 )
+from byoc_cli.errors import RegistrationError
 from byoc_cli.threads import apply_thread_policy, in_worker
 
 if "torch" not in sys.modules:  # only before torch: OpenMP reads its settings when loaded
@@ -74,6 +75,12 @@ class Registrar:
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
         threads: worker threads, each running torch single-threaded (default: torch's
             thread count, which the tool's thread policy sets to the usable cores).
+        fallback: ``"fpfh"``: when a learned registration's confidence is below
+            ``fallback_below``, register the pair again with FPFH features (at the same
+            scale, refined the same way) and keep the more confident of the two; None: never;
+            ``"auto"`` (default): ``"fpfh"`` with byoc features, None with fpfh.
+        fallback_below: the confidence under which the fallback runs (the gate of
+            ``--min-confidence``).
 
     Raises:
         WeightsError: the weights cannot be loaded.
@@ -87,15 +94,29 @@ class Registrar:
         voxel_size: float | str | None = "auto",
         device: str = "auto",
         threads: int | None = None,
+        fallback: str | None = "auto",
+        fallback_below: float | None = None,
     ) -> None:
         import torch
 
+        from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
         from byoc_cli.pipeline.register import FEATURE_DEFAULTS
 
         if features not in FEATURE_DEFAULTS:
             raise ValueError(
                 f"features must be one of {sorted(FEATURE_DEFAULTS)}, got {features!r}"
             )
+        if fallback == "auto":
+            fallback = "fpfh" if features == "byoc" else None
+        if fallback not in (None, "fpfh") or (fallback and features != "byoc"):
+            raise ValueError(
+                f"fallback must be None or 'fpfh' (with byoc features), got {fallback!r}"
+            )
+        self.fallback = fallback
+        self.fallback_below = (
+            DEFAULT_MIN_CONFIDENCE if fallback_below is None else float(fallback_below)
+        )
+        self._fallback_registrar: Registrar | None = None
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be at least 1, got {threads}")
         self.threads = threads or torch.get_num_threads()
@@ -329,6 +350,7 @@ class Registrar:
             estimator=estimator,
             refine=None if refine == "none" else refine,
             seed=seed,
+            confidence_model=self.features,
         )
 
         def cloud(f: Features) -> CloudFeatures:
@@ -347,7 +369,7 @@ class Registrar:
         )
         T = result.T_tgt_src.clone()
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s
-        return Registration(
+        registration = Registration(
             T_tgt_src=T.numpy(),
             confidence=result.confidence,
             num_inliers=result.num_inliers,
@@ -368,6 +390,45 @@ class Registrar:
             timings=dict(result.timings),
             cues=dict(result.cues),
         )
+        if self.fallback and registration.confidence < self.fallback_below:
+            return self._second_opinion(registration, src, tgt, seed)
+        return registration
+
+    def _second_opinion(
+        self, first: Registration, src: Features, tgt: Features, seed: int
+    ) -> Registration:
+        """``first`` (a learned registration below ``fallback_below``) or, when more
+        confident, the fallback features' registration of the same clouds (``src.cloud``,
+        ``tgt.cloud``); the result's ``fallback`` says what ran."""
+        if src.cloud is None or tgt.cloud is None:
+            return first
+        start = time.perf_counter()
+        with self._lock:
+            if self._fallback_registrar is None:
+                # FPFH's reference voxel is twice the learned one (5 cm and 2.5 cm)
+                voxel = "auto" if self.auto_voxel else 2.0 * self.voxel_size
+                self._fallback_registrar = Registrar("fpfh", voxel_size=voxel, threads=1)
+        try:
+            second = self._fallback_registrar.register(
+                src.cloud, tgt.cloud, scale=1.0, refine="multiscale", seed=seed
+            )
+        except RegistrationError:
+            second = None
+        seconds = time.perf_counter() - start
+        used = second is not None and second.confidence > first.confidence
+        note = {
+            "features": "fpfh",
+            "used": used,
+            "learned_confidence": first.confidence,
+            "confidence": None if second is None else second.confidence,
+            "seconds": seconds,
+        }
+        timings = {**first.timings, "fallback": seconds}
+        if not used:
+            return first._replace(timings=timings, fallback=note)
+        T = second.T_tgt_src.copy()
+        T[:3, 3] /= src.scale
+        return second._replace(T_tgt_src=T, timings=timings, fallback=note)
 
     def _same_voxel(self, src: Features, tgt: Features) -> tuple[Features, Features]:
         """With an auto voxel, two clouds extracted one at a time may have chosen different
@@ -535,6 +596,7 @@ def register(
     device: str = "auto",
     intrinsics: str | os.PathLike[str] | None = None,
     depth_scale: float = 1000.0,
+    fallback: str | None = "auto",
 ) -> Registration:
     """Register ``source`` onto ``target`` as ``byoc register`` does (same defaults, same T).
 
@@ -544,6 +606,7 @@ def register(
         estimator, refine, max_points, num_correspondences, seed: see :meth:`Registrar.match`.
         scale: multiply the inputs by this (0.001 for millimetres); T is in the input units.
         intrinsics, depth_scale: for depth-image files.
+        fallback: see :class:`Registrar` (below the default ``--min-confidence``).
 
     Returns:
         :class:`Registration`.
@@ -551,7 +614,7 @@ def register(
     Raises:
         InputError, ShapeError, WeightsError, RegistrationError: see :class:`Registrar`.
     """
-    registrar = Registrar(features, weights, voxel_size, device)
+    registrar = Registrar(features, weights, voxel_size, device, fallback=fallback)
     return registrar.register(
         source,
         target,

@@ -67,6 +67,10 @@ class Registration(NamedTuple):
             (:meth:`byoc_cli.pipeline.scale.VoxelChoice.as_dict`); None otherwise.
         cues: what the confidence is computed from
             (:attr:`byoc_cli.pipeline.register.RegistrationResult.cues`).
+        fallback: when the learned features' confidence fell below the registrar's
+            ``fallback_below`` and FPFH ran too: ``features``, ``used`` (the result is
+            FPFH's), ``learned_confidence``, ``confidence`` (FPFH's; None when it could not
+            register) and ``seconds``; None when no fallback ran.
     """
 
     T_tgt_src: np.ndarray
@@ -89,6 +93,7 @@ class Registration(NamedTuple):
     timings: dict[str, float]
     voxel_choice: dict | None = None
     cues: dict[str, float] | None = None
+    fallback: dict | None = None
 
 
 def load_weights(path: str | os.PathLike[str] | None = None) -> LoadedWeights:

@@ -12,6 +12,7 @@ from byoc_cli.pipeline.confidence import (
     COEFFICIENTS,
     DEFAULT_MIN_CONFIDENCE,
     FEATURES,
+    MODELS,
     cue_matrix,
     cue_vector,
     fit_logistic,
@@ -47,10 +48,21 @@ def test_sigmoid_does_not_overflow():
     assert sigmoid(1e6) == 1.0 and sigmoid(-1e6) == 0.0 and sigmoid(0.0) == 0.5
 
 
-def test_the_shipped_model_has_a_weight_per_feature_and_a_default_in_range():
-    assert len(COEFFICIENTS) == len(FEATURES) + 1
-    assert any(c != 0 for c in COEFFICIENTS)  # fitted, not the scaffold's zeros
+def test_the_shipped_models_have_a_weight_per_feature_and_a_default_in_range():
+    assert set(MODELS) == {"byoc", "fpfh"} and MODELS["byoc"] == COEFFICIENTS
+    for coefficients in MODELS.values():
+        assert len(coefficients) == len(FEATURES) + 1
+        assert any(c != 0 for c in coefficients)  # fitted, not the scaffold's zeros
     assert 0.0 < DEFAULT_MIN_CONFIDENCE < 1.0
+
+
+def test_the_register_config_names_a_known_confidence_model():
+    from byoc_cli.pipeline.register import RegisterConfig
+
+    assert RegisterConfig().confidence_model == "byoc"
+    assert RegisterConfig(confidence_model="fpfh").confidence_model == "fpfh"
+    with pytest.raises(ValueError, match="confidence_model"):
+        RegisterConfig(confidence_model="sift")
 
 
 def test_probability_is_in_range_and_finite_for_degenerate_cues():

@@ -198,7 +198,14 @@ def register_batch(
         # the weights are loaded before the summary is opened: unusable weights leave nothing
         registrar = None
         if todo:
-            registrar = make_registrar(options["features"], weights, options["voxel_size"], device)
+            registrar = make_registrar(
+                options["features"],
+                weights,
+                options["voxel_size"],
+                device,
+                options["fallback"],
+                options["min_confidence"],
+            )
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
     started = time.perf_counter()

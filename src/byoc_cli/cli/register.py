@@ -81,6 +81,15 @@ register_options = apply(
         "below this (the default keeps 95 % of the right results of the development pairs, "
         "docs/registering.md; 0 accepts every result).",
     ),
+    click.option(
+        "--fallback",
+        type=click.Choice(["fpfh", "none"]),
+        default="fpfh",
+        show_default=True,
+        help="With byoc features: when the confidence is below --min-confidence, register "
+        "the pair again with FPFH features (same scale, same refinement) and keep the more "
+        "confident result; the report says which ran (docs/registering.md). none: never.",
+    ),
     float_option(
         "--scale",
         type=SCALE,
@@ -104,9 +113,15 @@ register_options = apply(
 
 
 def make_registrar(
-    features: str, weights: Path | None, voxel_size: float | str | None, device: str
+    features: str,
+    weights: Path | None,
+    voxel_size: float | str | None,
+    device: str,
+    fallback: str = "none",
+    min_confidence: float | None = None,
 ):
-    """The API's :class:`~byoc_cli.api.Registrar` for the command's options.
+    """The API's :class:`~byoc_cli.api.Registrar` for the command's options (``fallback``
+    runs below ``min_confidence``, with byoc features only).
 
     Raises:
         click.UsageError: byoc features, no ``--weights`` and no shipped weights.
@@ -121,7 +136,10 @@ def make_registrar(
             "--features byoc needs --weights PATH (this install ships no trained weights); "
             "or use --features fpfh"
         )
-    return Registrar(features, weights, voxel_size, device)
+    use = fallback if fallback != "none" and features == "byoc" else None
+    return Registrar(
+        features, weights, voxel_size, device, fallback=use, fallback_below=min_confidence
+    )
 
 
 def match_settings(
@@ -195,6 +213,7 @@ def register(
     max_points: int | None,
     num_correspondences: int | None,
     min_confidence: float,
+    fallback: str,
     scale: float | None,
     intrinsics: Path | None,
     depth_scale: float,
@@ -219,7 +238,7 @@ def register(
     from byoc_cli.api import load_cloud
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
 
-    registrar = make_registrar(features, weights, voxel_size, device)
+    registrar = make_registrar(features, weights, voxel_size, device, fallback, min_confidence)
     result = registrar.register(
         source,
         target,
@@ -265,11 +284,17 @@ def register(
 def summary_line(source: Path, target: Path, result, seconds: float) -> str:
     """The line a successful ``byoc register`` prints on stderr: confidence, inliers, the
     voxel used and the time (``-q`` silences it)."""
-    return (
+    line = (
         f"byoc: registered {source} -> {target}: confidence {result.confidence:.3f}, "
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
         f"{100 * result.inlier_threshold:.1f} cm, voxel {result.voxel_size:g} m, {seconds:.1f} s"
     )
+    if result.fallback and result.fallback["used"]:
+        line += (
+            f" (FPFH features: the learned ones reached confidence "
+            f"{result.fallback['learned_confidence']:.3f})"
+        )
+    return line
 
 
 def _stdout_output(output: Path, json_path: Path | None) -> Path | None:
@@ -319,6 +344,7 @@ def registration_report(
         "passed": result.confidence >= min_confidence,
         "voxel_size_m": result.voxel_size,
         "voxel_choice": result.voxel_choice,
+        "fallback": result.fallback,
         "scale": scale,
         "max_points": result.max_points,
         "seed": result.seed,

@@ -19,7 +19,7 @@ from byoc_cli.fitting import randomized_procrustes, ransac
 from byoc_cli.geometry import apply_transform
 from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
-from byoc_cli.pipeline.confidence import probability_right
+from byoc_cli.pipeline.confidence import MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.refine import refine_multiscale
 
@@ -74,6 +74,8 @@ class RegisterConfig:
             fine on the full-resolution clouds, degenerate directions held).
         icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
         seed: seeds every random choice (subset, sampling).
+        confidence_model: the features whose calibration turns the cues into the confidence
+            (:data:`byoc_cli.pipeline.confidence.MODELS`).
     """
 
     num_correspondences: int = 200
@@ -88,12 +90,17 @@ class RegisterConfig:
     icp_factor: float = 2.0
     seed: int = 0
     chunk_size: int | None = None
+    confidence_model: str = "byoc"
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
         if self.refine not in REFINERS:
             raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
+        if self.confidence_model not in MODELS:
+            raise ValueError(
+                f"confidence_model must be one of {sorted(MODELS)}, got {self.confidence_model!r}"
+            )
         if self.num_correspondences < 1 or self.max_points < 0:
             raise ValueError("num_correspondences must be >= 1 and max_points >= 0")
 
@@ -234,7 +241,8 @@ def estimate_transform(
         "shift_deg": _angle_deg(shift[:3, :3]),
         "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / voxel_size,
     }
-    confidence = probability_right(cues) if num_inliers >= 3 else 0.0
+    model = MODELS[config.confidence_model]
+    confidence = probability_right(cues, model) if num_inliers >= 3 else 0.0
     timer("verify", start)
     return RegistrationResult(
         T_tgt_src=T,
