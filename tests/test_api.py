@@ -213,3 +213,16 @@ def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
     assert np.abs(both.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm, either way
     with pytest.raises(ValueError, match="fallback"):
         byoc_cli.Registrar("fpfh", fallback="fpfh")
+
+
+def test_features_from_a_share_of_the_points_index_the_whole_cloud():
+    pts = _cube(2)
+    registrar = byoc_cli.Registrar("fpfh")
+    full = registrar.extract_points(pts, None, "cloud", 0.05)
+    part = registrar.extract_points(pts, None, "cloud", 0.05, keep=0.25)
+    again = registrar.extract_points(pts, None, "cloud", 0.05, keep=0.25)
+    assert part.cloud is pts  # the refinement runs on every point
+    np.testing.assert_array_equal(part.points, pts[part.point_index])
+    assert part.point_index.max() >= len(pts) * 0.5  # indices of the whole cloud, not the share
+    assert len(part.points) < len(full.points)
+    np.testing.assert_array_equal(part.point_index, again.point_index)  # seeded

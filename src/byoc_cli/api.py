@@ -285,17 +285,24 @@ class Registrar:
         label: str,
         voxel_size: float | None = None,
         refine_voxel: float | None = None,
+        keep: float = 1.0,
     ) -> Features:
         """Features of ``points (N, 3)`` already in metres, at ``voxel_size`` (None: the
-        registrar's); ``refine_voxel``: the refinement's voxel (None: ``voxel_size``)."""
+        registrar's); ``refine_voxel``: the refinement's voxel (None: ``voxel_size``);
+        ``keep``: the share of the points the features are computed from (a seeded random
+        subset; :attr:`~byoc_cli.pipeline.scale.VoxelChoice.keep`). The refinement runs on
+        all of them (``Features.cloud``)."""
         import torch
 
         voxel = voxel_size or self.voxel_size
-        got = self.extractor(torch.from_numpy(points), label=label, voxel_size=voxel)
+        subset = _keep_subset(len(points), keep)
+        used = points if subset is None else points[subset]
+        got = self.extractor(torch.from_numpy(used), label=label, voxel_size=voxel)
+        index = got.point_index.numpy()
         return Features(
             points=got.points.numpy(),
             feats=got.feats.numpy(),
-            point_index=got.point_index.numpy(),
+            point_index=index if subset is None else subset[index],
             voxel_size=voxel,
             refine_voxel=refine_voxel,
             scale=1.0 if scale is None else float(scale),
@@ -442,8 +449,8 @@ class Registrar:
         choice = self.choose_voxel(src.cloud, tgt.cloud)
         voxel = (choice.voxel_size, choice.refine_voxel)
         return (
-            self.extract_points(src.cloud, src.scale, "source", *voxel),
-            self.extract_points(tgt.cloud, tgt.scale, "target", *voxel),
+            self.extract_points(src.cloud, src.scale, "source", *voxel, choice.keep_of(0)),
+            self.extract_points(tgt.cloud, tgt.scale, "target", *voxel, choice.keep_of(1)),
         )
 
     def register(
@@ -474,10 +481,10 @@ class Registrar:
             job.result() for job in read
         )
         t_scale = time.perf_counter()
-        choice, voxel = None, (None, None)
+        choice, voxels = None, [(None, None, 1.0)] * 2
         if self.auto_voxel:
             choice = self.voxel_for(size_src, size_tgt)
-            voxel = (choice.voxel_size, choice.refine_voxel)
+            voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
         t_choice = time.perf_counter() - t_scale
         jobs = [
             pool.submit(
@@ -485,7 +492,7 @@ class Registrar:
                 points,
                 name,
                 scale,
-                voxel,
+                voxels[k],
                 multiscale and k == 0,
                 multiscale and k == 1,
             )
@@ -523,12 +530,12 @@ class Registrar:
         points: np.ndarray,
         name: str,
         scale: float | None,
-        voxel: tuple[float | None, float | None],
+        voxel: tuple[float | None, float | None, float],
         as_source: bool,
         as_target: bool,
     ) -> tuple[Features, dict[str, float]]:
-        """Extract one cloud's features at ``voxel`` (``(voxel_size, refine_voxel)``) and
-        prepare its refinement levels; the features and the seconds of each step."""
+        """Extract one cloud's features at ``voxel`` (``(voxel_size, refine_voxel, keep)``)
+        and prepare its refinement levels; the features and the seconds of each step."""
         start = time.perf_counter()
         feats = self.extract_points(points, scale, name, *voxel)
         extracted = time.perf_counter()
@@ -539,6 +546,18 @@ class Registrar:
             self.prepare_refinement(feats, True, False)
         done = time.perf_counter()
         return feats, {"features": extracted - start, "prepare": done - extracted}
+
+
+def _keep_subset(n: int, keep: float) -> np.ndarray | None:
+    """A sorted random subset of ``range(n)`` of ``round(keep * n)`` indices (at least 1),
+    the same for the same ``n`` and ``keep``; None when ``keep >= 1``."""
+    import torch
+
+    if keep >= 1.0 or n == 0:
+        return None
+    generator = torch.Generator().manual_seed(n)
+    count = max(1, round(keep * n))
+    return torch.randperm(n, generator=generator)[:count].sort().values.numpy()
 
 
 class _InPlace:

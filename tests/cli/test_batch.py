@@ -107,7 +107,8 @@ def test_pairs_side_by_side_give_the_transforms_of_one_thread(
         for count in ("1", "2"):
             out = tmp_path / f"threads{count}"
             args = ["--threads", count, "register-batch", str(listing), "--out-dir", str(out)]
-            res = runner.invoke(cli, [*args, *FAST])
+            # no FPFH fallback: its pairs would report FPFH's voxel
+            res = runner.invoke(cli, [*args, *FAST, "--fallback", "none"])
             assert res.exit_code in (0, 3), res.output
             outputs[count] = {p.name: p.read_bytes() for p in out.glob("*.txt")}
             summary = _summary(out / "summary.jsonl")
@@ -115,8 +116,13 @@ def test_pairs_side_by_side_give_the_transforms_of_one_thread(
             encoded = [
                 s["timings_s"][k] > 0 for s in summary for k in ("features_src", "features_tgt")
             ]
-            # each fragment encoded once per voxel its pairs chose, also by two workers
-            voxels = {(s[c], s["voxel_size_m"]) for s in summary for c in ("source", "target")}
+            # each fragment encoded once per voxel (and share of its points) its pairs chose,
+            # also by two workers
+            voxels = {
+                (s[c], s["voxel_size_m"], s["voxel_choice"]["feature_points_kept"][k])
+                for s in summary
+                for k, c in enumerate(("source", "target"))
+            }
             assert sum(encoded) == len(voxels)
     finally:
         torch.set_num_threads(before)
@@ -192,7 +198,12 @@ def test_below_min_confidence_exits_3_and_overwrite_redoes(runner, tmp_path):
     res = runner.invoke(cli, [*args, "--overwrite"])
     assert res.exit_code == 3
     assert (tmp_path / "a__b.txt").stat().st_mtime_ns != first
-    assert [s["status"] for s in _summary(tmp_path / "summary.jsonl")] == ["low_confidence"] * 2
+    summary = _summary(tmp_path / "summary.jsonl")
+    assert [s["status"] for s in summary] == ["low_confidence"] * 2
+    # below --min-confidence the FPFH fallback ran and the record says what it gave
+    note = summary[-1]["fallback"]
+    assert note["features"] == "fpfh" and isinstance(note["used"], bool)
+    assert summary[-1]["features"] == ("fpfh" if note["used"] else "byoc")
 
 
 @pytest.mark.parametrize(

@@ -10,7 +10,6 @@ from byoc_cli.errors import RegistrationError
 from byoc_cli.pipeline.scale import (
     CENTRE_RADIUS,
     DENSITY_FACTOR,
-    MISMATCH_FACTOR,
     TRAINED_RADIUS,
     CloudScale,
     choose_voxel,
@@ -57,9 +56,14 @@ def test_sparse_clouds_raise_the_feature_voxel_but_not_the_refinement():
     alike = choose_voxel((CloudScale(1000, 0.03, 1.0), CloudScale(1000, 0.03, 1.0)), REF)
     assert alike.voxel_size == pytest.approx(DENSITY_FACTOR * 0.03)
     assert alike.refine_voxel == REF
+    assert alike.keep == (1.0, 1.0)
     unlike = choose_voxel((CloudScale(1000, 0.03, 1.0), CloudScale(4000, 0.015, 1.0)), REF)
-    assert unlike.voxel_size == pytest.approx(MISMATCH_FACTOR * 0.03)
-    assert "sampled unlike" in unlike.reason
+    assert unlike.voxel_size == pytest.approx(DENSITY_FACTOR * 0.03)
+    # the denser cloud's features come from a quarter of its points: the spacing doubles
+    assert unlike.keep == pytest.approx((1.0, 0.25))
+    assert unlike.keep_of(1) == pytest.approx(0.25) and unlike.keep_of(5) == 1.0
+    assert "as sparse as the other" in unlike.reason
+    assert unlike.as_dict()["feature_points_kept"] == pytest.approx([1.0, 0.25])
 
 
 def test_as_dict_is_json_ready():

@@ -295,12 +295,14 @@ class _PairRunner:
         try:
             cloud_src = self._cloud(entry.source, "source", timings)
             cloud_tgt = self._cloud(entry.target, "target", timings)
-            choice, voxel = None, (None, None)
+            choice, voxels = None, [(None, None, 1.0)] * 2
             if self.registrar.auto_voxel:
                 choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
-                voxel = (choice.voxel_size, choice.refine_voxel)
-            src = self._features(cloud_src, entry.source, voxel, timings, "features_src")
-            tgt = self._features(cloud_tgt, entry.target, voxel, timings, "features_tgt")
+                voxels = [
+                    (choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)
+                ]
+            src = self._features(cloud_src, entry.source, voxels[0], timings, "features_src")
+            tgt = self._features(cloud_tgt, entry.target, voxels[1], timings, "features_tgt")
             result = self.registrar.match(src, tgt, **self.settings)
             result = result._replace(
                 timings={**timings, **result.timings},
@@ -328,8 +330,8 @@ class _PairRunner:
         return cloud
 
     def _features(self, cloud, path: Path, voxel: tuple, timings: dict, stage: str):
-        """Features at ``voxel``, ``(voxel_size, refine_voxel)`` (None, None: the
-        registrar's)."""
+        """Features at ``voxel``, ``(voxel_size, refine_voxel, keep)`` (None, None, 1.0:
+        the registrar's)."""
         start = time.perf_counter()
         points, name, _ = cloud
         feats, cached = self.cache.get(

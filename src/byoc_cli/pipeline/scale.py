@@ -14,10 +14,11 @@ The rule (:func:`choose_voxel`), on the two clouds of a pair together:
    :data:`CENTRE_RADIUS` (millimetres, an object a few centimetres across, a LiDAR scan tens
    of metres wide: all brought to the middle of the trained range).
 2. **Density.** At least :data:`DENSITY_FACTOR` times the nearest-neighbour spacing of the
-   sparser cloud, and :data:`MISMATCH_FACTOR` times when one cloud is sparser than the other
-   (spacings more than :data:`MISMATCH_RATIO` apart): the features of a cloud with holes at
-   the voxel (thinned after voxelisation) do not match those of a cloud without; at a voxel
-   where neither has holes they do.
+   sparser cloud. When one cloud is sampled more sparsely than the other (spacings more than
+   :data:`MISMATCH_RATIO` apart), the features of the denser one are computed from a random
+   share of its points (:attr:`VoxelChoice.keep`) that gives it the sparser one's spacing: the
+   features of a cloud with holes at the voxel (thinned after voxelisation) do not match those
+   of a cloud without, and two clouds thinned alike do match.
 
 The refinement does not coarsen with the density floor: it runs on the full-resolution
 clouds at the voxel of step 1 (:attr:`VoxelChoice.refine_voxel`), so a voxel raised for the
@@ -41,9 +42,10 @@ TRAINED_RADIUS = (0.15, 1.6)
 CENTRE_RADIUS = 1.0
 #: the voxel is at least this many nearest-neighbour spacings of the sparser cloud
 DENSITY_FACTOR = 1.8
-#: ... and this many when the two clouds' spacings differ by more than MISMATCH_RATIO
-MISMATCH_FACTOR = 2.5
+#: clouds whose spacings differ by more than this are thinned alike for their features
 MISMATCH_RATIO = 1.25
+#: the smallest share of a cloud's points its features are computed from
+MIN_KEEP = 0.02
 #: fewest distinct points a cloud needs for its scale to be read from it
 MIN_POINTS = 32
 #: clouds of one pair whose radii differ more than this are taken for different units
@@ -87,6 +89,8 @@ class VoxelChoice(NamedTuple):
         factor: ``voxel_size / reference``: the scale the data were brought to.
         reason: one sentence for reports and logs.
         scales: the :class:`CloudScale` of each cloud the choice read.
+        keep: per cloud, the share of its points its features are computed from (1.0: all;
+            below 1 for a cloud denser than the other, so that both are sampled alike).
     """
 
     voxel_size: float
@@ -95,6 +99,11 @@ class VoxelChoice(NamedTuple):
     factor: float
     reason: str
     scales: tuple[CloudScale, ...]
+    keep: tuple[float, ...] = ()
+
+    def keep_of(self, index: int) -> float:
+        """The share of cloud ``index``'s points its features are computed from."""
+        return self.keep[index] if index < len(self.keep) else 1.0
 
     def as_dict(self) -> dict:
         """JSON-ready: voxel, reference, factor, reason and each cloud's spacing and radius."""
@@ -105,6 +114,7 @@ class VoxelChoice(NamedTuple):
             "factor": self.factor,
             "reason": self.reason,
             "clouds": [s._asdict() for s in self.scales],
+            "feature_points_kept": list(self.keep),
         }
 
 
@@ -166,13 +176,18 @@ def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoic
         side = "below" if radius < low else "above"
         why = f"radius {radius:.3g} is {side} the trained range {low:g}-{high:g}; scaled"
     refine_voxel = voxel
-    factor = DENSITY_FACTOR if alike else MISMATCH_FACTOR
-    if factor * spacing > voxel:
-        voxel = factor * spacing
-        why += f"; raised to {factor:g} x the point spacing {spacing:.3g} of the sparser cloud"
-        if not alike:
-            why += " (the clouds are sampled unlike)"
-    return VoxelChoice(voxel, refine_voxel, reference, voxel / reference, why, tuple(scales))
+    if DENSITY_FACTOR * spacing > voxel:
+        voxel = DENSITY_FACTOR * spacing
+        why += (
+            f"; raised to {DENSITY_FACTOR:g} x the point spacing {spacing:.3g} of the sparser cloud"
+        )
+    keep = tuple(
+        1.0 if alike or s.spacing <= 0 else max(MIN_KEEP, min(1.0, (s.spacing / spacing) ** 2))
+        for s in scales
+    )
+    if not alike:
+        why += "; the denser cloud's features from a share of its points, as sparse as the other"
+    return VoxelChoice(voxel, refine_voxel, reference, voxel / reference, why, tuple(scales), keep)
 
 
 def trained_scale(choice: VoxelChoice) -> float | None:
