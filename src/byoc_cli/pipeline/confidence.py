@@ -34,42 +34,42 @@ FEATURES = (
 )
 #: fitted weights of :data:`FEATURES`, then the bias, for the learned features
 #: (``python benchmarks/confidence.py fit`` on its development set of 320 pairs: 311
-#: registered, 218 of them right against the ground truth refined on the data, 9 refused)
+#: registered, 219 of them right against the ground truth refined on the data, 9 refused)
 COEFFICIENTS = (
-    -0.4737,
-    0.6401,
-    0.8594,
-    -1.0205,
-    1.0598,
-    0.7484,
-    -0.5176,
-    -0.4836,
-    2.2531,
-    0.3125,
-    -0.2287,
-    0.7031,
+    -0.4876,
+    0.7900,
+    0.8316,
+    -0.9165,
+    0.9572,
+    0.3154,
+    -0.3050,
+    -0.5071,
+    2.4883,
+    0.3444,
+    -0.1400,
+    1.6932,
 )
 #: the default ``--min-confidence`` of ``register`` and ``register-batch``: the highest
 #: threshold that keeps 95 % of the right results of the development set in its grouped
-#: cross-validation, with the FPFH fallback below it (precision there: 79.1 %, recall 95.9 %;
+#: cross-validation, with the FPFH fallback below it (precision there: 79.7 %, recall 95.5 %;
 #: see docs/registering.md)
 DEFAULT_MIN_CONFIDENCE = 0.45
 #: the same for FPFH features refined by the multiscale ICP (the learned features' fallback),
-#: fitted on the 190 FPFH registrations of the pairs where the learned features' confidence
-#: was low (89 right)
+#: fitted on the 174 FPFH registrations of the pairs where the learned features' confidence
+#: was low (72 right)
 FPFH_COEFFICIENTS = (
-    0.3064,
-    1.0288,
-    1.0916,
-    0.4514,
-    -0.0026,
-    1.1415,
-    -0.2461,
-    -0.3165,
-    2.3753,
-    0.0994,
-    -0.0537,
-    3.2953,
+    0.2300,
+    0.9971,
+    0.9678,
+    0.4867,
+    0.0115,
+    1.1944,
+    -0.2968,
+    -0.1611,
+    1.9036,
+    -0.0280,
+    0.1110,
+    2.4098,
 )
 #: the coefficients of each kind of features
 MODELS = {"byoc": COEFFICIENTS, "fpfh": FPFH_COEFFICIENTS}
