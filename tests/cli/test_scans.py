@@ -81,7 +81,8 @@ def test_a_scan_that_overlaps_nothing_is_unplaced_exit_3(desk, tmp_path):
     paths, _ = desk
     rng = np.random.default_rng(0)
     elsewhere = tmp_path / "elsewhere.ply"
-    write_ply(elsewhere, rng.uniform(0, 1, (5000, 3)) + 50.0)
+    ball = rng.normal(size=(5000, 3))  # a sphere's surface far away (noise is refused)
+    write_ply(elsewhere, 0.5 * ball / np.linalg.norm(ball, axis=1, keepdims=True) + 50.0)
     out = tmp_path / "scan"
     result = _invoke(["register-scans", paths[0], paths[1], elsewhere, "--out", out,
                       "--features", "fpfh"])  # fmt: skip
@@ -112,9 +113,13 @@ def test_bad_scans_give_one_line_exit_1_and_no_folder(tmp_path, case, needle):
     elif case == "corrupt":
         bad = tmp_path / "bad.ply"
         bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\n")
-    else:
+    else:  # a scan in millimetres beside one in metres (both surfaces: a wavy sheet)
+        good = tmp_path / "sheet.ply"
+        u, v = np.meshgrid(np.linspace(0, 1, 30), np.linspace(0, 1, 30))
+        sheet = np.column_stack([u.ravel(), v.ravel(), 0.1 * np.sin(6 * u.ravel())])
+        write_ply(good, sheet)
         bad = tmp_path / "big.ply"
-        write_ply(bad, np.random.default_rng(0).uniform(0, 5000, (100, 3)))
+        write_ply(bad, 5000 * sheet)
     out = tmp_path / "out"
     merged = tmp_path / "merged.ply"
     result = _invoke(["register-scans", good, bad, "--out", out, "--features", "fpfh",
@@ -161,3 +166,29 @@ def test_usage_errors_exit_2(tmp_path, monkeypatch):
     weights = _invoke(["register-scans", a, tmp_path / "c.ply", "--out", out])
     assert weights.exit_code == 2 and "--weights" in weights.output
     assert not out.exists()
+
+
+def test_scans_in_millimetres_are_brought_to_the_features_scale(desk, run, tmp_path):
+    """No flags: scans 1000 times larger are registered at the features' own scale and the
+    poses come back in millimetres, as accurate as the metre scans' (the test above)."""
+    paths, gt = desk
+    _, out_metres, _ = run
+    scaled = []
+    for k, path in enumerate(paths):
+        scaled.append(tmp_path / f"mm{k}.ply")
+        write_ply(scaled[-1], read_point_cloud(path).points * 1000.0)
+    out = tmp_path / "mm"
+    result = _invoke(["register-scans", *scaled, "--out", out, "--features", "fpfh"])
+    assert result.exit_code == 0, result.output
+    assert "3/3 scans placed" in result.stdout
+    poses = [read_transform(out / "poses" / f"mm{k}.txt") for k in range(3)]
+    metres = [p.copy() for p in poses]
+    for p in metres:
+        p[:3, 3] /= 1000.0
+    rotation, translation = pose_errors(metres, gt)
+    assert rotation < 5.0 and translation < 0.08
+    settings = json.loads((out / "report.json").read_text())["settings"]
+    assert 0.0005 < settings["scale"] < 0.005  # millimetres brought to about metres
+    assert "above the trained range" in settings["voxel_choice"]["reason"]
+    before = json.loads((out_metres / "report.json").read_text())["settings"]
+    assert before["scale"] is None  # scans of the trained size are not rescaled

@@ -15,6 +15,7 @@ from byoc_cli.pipeline.scale import (
     CloudScale,
     choose_voxel,
     measure,
+    trained_scale,
 )
 
 REF = 0.025
@@ -35,6 +36,21 @@ def test_other_sizes_scale_with_the_data(factor):
     got = choose_voxel((scaled, scaled), REF)
     assert got.voxel_size == pytest.approx(REF * factor)
     assert "scaled" in got.reason
+
+
+@pytest.mark.parametrize("factor", [0.001, 0.01, 10.0, 100.0])
+def test_trained_scale_brings_other_sizes_to_the_centre_radius(factor):
+    """Multiplying by the trained scale makes the refinement voxel the reference one: the
+    radius of the scaled data is CENTRE_RADIUS, whatever the density floor did."""
+    sparse = CloudScale(1000, 0.05 * factor, CENTRE_RADIUS * factor)
+    choice = choose_voxel((sparse, sparse), REF)
+    s = trained_scale(choice)
+    assert s == pytest.approx(1.0 / factor)
+    assert choice.refine_voxel * s == pytest.approx(REF)
+    in_range = choose_voxel((CloudScale(10_000, 0.005, 1.0),) * 2, REF)
+    assert trained_scale(in_range) is None
+    raised = choose_voxel((CloudScale(1000, 0.03, 1.0),) * 2, REF)  # density floor only
+    assert trained_scale(raised) is None
 
 
 def test_sparse_clouds_raise_the_feature_voxel_but_not_the_refinement():

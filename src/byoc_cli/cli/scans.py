@@ -19,7 +19,6 @@ from byoc_cli.cli.options import (
     device_option,
     features_option,
     finite_float,
-    fixed_voxel_size_option,
     float_option,
     int_option,
     path_option,
@@ -172,7 +171,15 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     ),
     features_option,
     weights_option,
-    fixed_voxel_size_option,
+    float_option(
+        "--voxel-size",
+        type=VOXEL,
+        default=None,
+        help="Feature voxel in metres [default: from the scans: at the size of rooms and "
+        "desks the features' own (0.025 for byoc, 0.05 for fpfh); scans of another size "
+        "(objects, LiDAR, millimetres) are scaled to it, the report says by how much, and "
+        "poses and the merged model are written in the input units].",
+    ),
     float_option(
         "--icp-voxel",
         type=VOXEL,
@@ -212,7 +219,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
 )
 @handle_errors
 def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: Any) -> None:
-    """Register overlapping SCANS (point clouds in metres) into the frame of the first one.
+    """Register overlapping SCANS (point clouds) into the frame of the first one.
 
     Every overlapping pair is registered with the pairwise registration of `byoc register`
     (the same --features, --weights, --voxel-size) and refined by ICP; a pose graph of the
@@ -269,7 +276,13 @@ def _run(
     )
     t0 = time.perf_counter()
     scale = options.scale
-    points = [_load(path, scale) for path in scans]
+    auto = options.voxel_size is None and scale is None
+    points = [_load(path, 1.0 if auto else scale) for path in scans]
+    voxel_choice = None
+    if auto:  # the scans' own size: brought to the features' scale when it is another
+        scale, voxel_choice = _auto_scale(points, scans, extractor.voxel_size)
+        if scale is not None:
+            points = [p * scale for p in points]
     load_time = time.perf_counter() - t0
     config = ScansConfig(
         all_pairs_max=options.all_pairs_max,
@@ -322,6 +335,7 @@ def _run(
             "max_points": register_config.max_points,
             "seed": options.seed,
             "scale": scale,
+            "voxel_choice": None if voxel_choice is None else voxel_choice.as_dict(),
             "merged_voxel_m": options.merged_voxel if options.merged is not None else None,
             **config_dict(config),
         },
@@ -354,6 +368,26 @@ def _run(
             f"pairs kept, {len(pruned)} edges pruned, {time.perf_counter() - started:.1f} s\n"
         )
     return list(result.unplaced)
+
+
+def _auto_scale(points: list, scans: tuple[Path, ...], reference: float):
+    """``(scale or None, VoxelChoice)``: the factor that brings ``points`` (the scans, each
+    ``(N, 3)``) to the size the features were made for
+    (:func:`byoc_cli.pipeline.scale.trained_scale`; None: they are that size).
+
+    Raises:
+        RegistrationError: a scan too small to read a scale from, no extent, points that fill
+            a volume, or scans too different in size to be in the same units.
+    """
+    import torch
+
+    from byoc_cli.pipeline.scale import choose_voxel, measure, trained_scale
+
+    sizes = tuple(
+        measure(torch.from_numpy(p), str(path)) for p, path in zip(points, scans, strict=True)
+    )
+    choice = choose_voxel(sizes, reference)
+    return trained_scale(choice), choice
 
 
 def _unscaled(T, unit: float):

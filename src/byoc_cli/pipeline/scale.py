@@ -173,3 +173,14 @@ def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoic
         if not alike:
             why += " (the clouds are sampled unlike)"
     return VoxelChoice(voxel, refine_voxel, reference, voxel / reference, why, tuple(scales))
+
+
+def trained_scale(choice: VoxelChoice) -> float | None:
+    """The factor that brings clouds of ``choice`` to the size the features were made for
+    (their refinement voxel becomes the reference voxel); None when they are that size
+    already. Commands whose every setting is in metres of the trained scale
+    (``register-scans``) multiply the coordinates by it and divide the results' translations
+    by it."""
+    if choice.refine_voxel == choice.reference:
+        return None
+    return choice.reference / choice.refine_voxel
