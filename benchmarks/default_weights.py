@@ -9,7 +9,7 @@ Usage::
 Runs, for every pair set, the ``byoc eval-pairs`` / ``byoc eval-fmr`` commands it prints
 (one JSON per command in ``--out``; a JSON already there is reused if it was made with the
 same weights file, so columns can be run at different times), then prints the Markdown table
-of the README: rotation accuracy at 5 deg and translation accuracy at 10 cm on the RGB-D
+of docs/weights.md: rotation accuracy at 5 deg and translation accuracy at 10 cm on the RGB-D
 pair sets; FMR, corr-FMR and registration recall (official) on the fragment sets.
 ``--weights`` adds a column per file (e.g. the best paper-recipe weights). ``--seeds`` runs
 every command at each seed (``--seed``: RANSAC's samples, the points sampled per cloud) and

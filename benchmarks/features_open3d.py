@@ -1,4 +1,5 @@
-"""`byoc features` descriptors in Open3D's correspondence RANSAC, as the README shows, over seeds.
+"""`byoc features` descriptors in Open3D's correspondence RANSAC, as docs/pipelines.md shows,
+over seeds.
 
 Usage::
 

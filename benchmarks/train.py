@@ -53,7 +53,8 @@ def main() -> None:
     from byoc_cli.training.config import TrainConfig
     from byoc_cli.training.data import PairDataset
     from byoc_cli.training.distributed import resolve_device
-    from byoc_cli.training.trainer import _amp_dtype, build_model, build_optimizer
+    from byoc_cli.training.loop import build_optimizer
+    from byoc_cli.training.paper import build_model, mixed_precision
 
     device = resolve_device(args.device)
     archs = args.arch or ["compact", "minkunet34c"]
@@ -96,7 +97,7 @@ def main() -> None:
             config = TrainConfig(
                 variant=variant, arch=arch, batch_size=args.batch_size, amp=args.amp
             )
-            model = build_model(config, 0, _amp_dtype(config, device)).to(device).train()
+            model = build_model(config, 0, mixed_precision(config, device)).to(device).train()
             opt = build_optimizer(model, config)
             if device.type == "cuda":
                 torch.cuda.reset_peak_memory_stats(device)
@@ -145,12 +146,9 @@ def _self_posed(args, arch, samples, seqs, order, device, extra=""):
 
     from byoc_cli.models.encoder import build_encoder
     from byoc_cli.training.config import TrainConfig
+    from byoc_cli.training.loop import build_optimizer
     from byoc_cli.training.pseudo_poses import frame_points
-    from byoc_cli.training.self_posed import (
-        CACHE_VOXEL_FACTOR,
-        build_optimizer,
-        training_step,
-    )
+    from byoc_cli.training.self_posed import CACHE_VOXEL_FACTOR, training_step
     from byoc_cli.training.self_posed_data import cache_frame
 
     del samples
@@ -168,7 +166,7 @@ def _self_posed(args, arch, samples, seqs, order, device, extra=""):
         frames[i] = cache_frame(frame_points(seq, i), CACHE_VOXEL_FACTOR * config.voxel_size)
     poses = {i: seq.pose(i) for i in frames}
     encoder = build_encoder(arch).to(device).train()
-    opt = build_optimizer(encoder, config)
+    opt = build_optimizer(encoder, config, fused=True)
     gen = torch.Generator().manual_seed(0)
     times = []
     for k in range(steps):

@@ -74,8 +74,8 @@ def test_features_file_feeds_open3d_ransac(runner, shared_data, tmp_path):
     )
     T, T_gt = np.asarray(result.transformation), read_transform(demo / "T_gt.txt")
     cos = (np.trace(T[:3, :3] @ T_gt[:3, :3].T) - 1) / 2
-    # a coarse alignment, as correspondence RANSAC at a 5 cm threshold gives (README: over ten
-    # Open3D seeds 1.6-4.3 deg and 6.5-21 cm with the shipped weights); the identity is
+    # a coarse alignment, as correspondence RANSAC at a 5 cm threshold gives (docs/pipelines.md:
+    # over ten Open3D seeds 1.6-4.3 deg and 6.5-21 cm with the shipped weights); the identity is
     # 18 deg and 52 cm away
     assert math.degrees(math.acos(max(-1.0, min(1.0, cos)))) < 5.0
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.25

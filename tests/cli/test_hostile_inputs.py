@@ -309,12 +309,14 @@ def test_case5_a_run_that_diverges_ends_in_one_line_and_the_fixed_command_runs(
     line, before a checkpoint or weights are written; the same --out then trains."""
     import torch
 
-    import byoc_cli.training.trainer as trainer
+    import byoc_cli.training.loop as loop
 
     out = tmp_path / "run"
     with monkeypatch.context() as patch:
         inf = float("inf")
-        patch.setattr(trainer, "build_optimizer", lambda m, c: torch.optim.SGD(m.parameters(), inf))
+        patch.setattr(
+            loop, "build_optimizer", lambda m, c, **_: torch.optim.SGD(m.parameters(), inf)
+        )
         result = _run(*_train_args(shared_data, out))
     assert result.exit_code == 1 and "Traceback" not in result.output, result.output
     lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error")]

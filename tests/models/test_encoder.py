@@ -31,7 +31,7 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-#: Parameter count of MinkUNet34C (in 3, out 32) in method.md.
+#: Parameter count of MinkUNet34C (in 3, out 32), the paper's encoder (docs/training.md).
 MINKUNET34C_PARAMETERS = 37.9e6
 
 TINY = EncoderConfig(

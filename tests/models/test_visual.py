@@ -12,7 +12,7 @@ def test_shape_unit_norm_and_size():
     assert out.shape == (2, 32, 32, 24)
     torch.testing.assert_close(out.norm(dim=1), torch.ones(2, 32, 24))
     n = sum(p.numel() for p in enc.parameters())
-    assert 0.28e6 < n < 0.32e6  # method.md: about 0.30 M
+    assert 0.28e6 < n < 0.32e6  # the paper's visual encoder: about 0.30 M (docs/training.md)
 
 
 def test_bad_input_shape():

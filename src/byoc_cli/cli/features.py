@@ -107,7 +107,7 @@ def features(
     device: str,
 ) -> None:
     """Write the kept points of CLOUD and their features (the encoder's, or FPFH) for
-    TEASER++, Open3D's RANSAC or a matcher of your own (README: "Descriptors for other tools").
+    TEASER++, Open3D's RANSAC or a matcher of your own (docs/pipelines.md).
     """
     from byoc_cli.io import atomic_write_bytes
 

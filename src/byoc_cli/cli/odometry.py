@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -29,10 +31,37 @@ from byoc_cli.cli.options import (
     verbose_option,
     weights_option,
 )
-from byoc_cli.cli.output import claim_outputs, is_stdout, write_json, write_stdout
-from byoc_cli.cli.scans import StageProgress, pairwise_setup
+from byoc_cli.cli.output import (
+    claim_outputs,
+    is_stdout,
+    main_output,
+    write_json,
+    write_stdout,
+)
+from byoc_cli.cli.pairwise import StageProgress, pairwise_setup
 
 log = logging.getLogger("byoc")
+
+
+@dataclass(frozen=True)
+class OdometryOptions:
+    """The options of ``odometry`` besides the sequence, the outputs, ``--eval`` and ``-q``."""
+
+    features: str
+    weights: Path | None
+    voxel_size: float | None
+    icp_voxel: float
+    max_depth: float
+    frame_stride: int
+    max_frames: int
+    keyframe_rotation: float
+    keyframe_translation: float
+    min_fitness: float
+    pose_graph: bool
+    intrinsics: Path | None
+    depth_scale: float | None
+    seed: int
+    device: str
 
 
 def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float | None):
@@ -206,22 +235,8 @@ def odometry(
     output: Path,
     json_path: Path | None,
     do_eval: bool,
-    features: str,
-    weights: Path | None,
-    voxel_size: float | None,
-    icp_voxel: float,
-    max_depth: float,
-    frame_stride: int,
-    max_frames: int,
-    keyframe_rotation: float,
-    keyframe_translation: float,
-    min_fitness: float,
-    pose_graph: bool,
-    intrinsics: Path | None,
-    depth_scale: float | None,
-    seed: int,
-    device: str,
     quiet: bool,
+    **options: Any,
 ) -> None:
     """Track the depth camera of one RGB-D sequence and write its trajectory (TUM format).
 
@@ -234,25 +249,28 @@ def odometry(
     from byoc_cli.pipeline.odometry import OdometryConfig, config_dict, estimate_trajectory
 
     started = time.perf_counter()
-    device = resolve_device(device)
-    output = _stdout_output(output, json_path)
+    options["device"] = resolve_device(options["device"])
+    o = OdometryOptions(**options)
+    output = main_output(output, json_path)
     outputs = claim_outputs(
-        {"-o": output, "--json": json_path}, inputs=(intrinsics, weights), input_dirs=(rgbd_dir,)
+        {"-o": output, "--json": json_path},
+        inputs=(o.intrinsics, o.weights),
+        input_dirs=(rgbd_dir,),
     )
     extractor, register_config, weights_info = pairwise_setup(
-        features, weights, voxel_size, device, seed
+        o.features, o.weights, o.voxel_size, o.device, o.seed
     )
-    sequence = _load_sequence(rgbd_dir, intrinsics, depth_scale)
+    sequence = _load_sequence(rgbd_dir, o.intrinsics, o.depth_scale)
     config = OdometryConfig(
-        voxel_size=icp_voxel,
-        max_depth=max_depth,
-        frame_stride=frame_stride,
-        max_frames=max_frames,
-        min_fitness=min_fitness,
-        keyframe_rotation_deg=keyframe_rotation,
-        keyframe_translation=keyframe_translation,
-        pose_graph=pose_graph,
-        seed=seed,
+        voxel_size=o.icp_voxel,
+        max_depth=o.max_depth,
+        frame_stride=o.frame_stride,
+        max_frames=o.max_frames,
+        min_fitness=o.min_fitness,
+        keyframe_rotation_deg=o.keyframe_rotation,
+        keyframe_translation=o.keyframe_translation,
+        pose_graph=o.pose_graph,
+        seed=o.seed,
     )
     progress = StageProgress(quiet)
     try:
@@ -296,14 +314,3 @@ def odometry(
     log.info("%d frames, %d keyframes, %.1f s", len(frames), len(trajectory.keyframes), seconds)
     if evaluation is not None:
         _print_eval(evaluation, sequence.name)
-
-
-def _stdout_output(output: Path, json_path: Path | None) -> Path | None:
-    """``-o``: None when only ``--json -`` was asked for (the default ``-o -`` then yields)."""
-    from click.core import ParameterSource
-
-    if not (is_stdout(output) and is_stdout(json_path)):
-        return output
-    if click.get_current_context().get_parameter_source("output") is ParameterSource.DEFAULT:
-        return None
-    raise click.UsageError("-o and --json cannot both be stdout")

@@ -125,3 +125,19 @@ def claim_outputs(
     for path in outputs.values():
         out.claim(None if is_stdout(path) else path)  # stdout: checked above
     return out
+
+
+def main_output(output: Path, json_path: Path | None) -> Path | None:
+    """``-o`` of a command whose main output defaults to stdout beside ``--json``: None when
+    only ``--json -`` was asked for (the default ``-o -`` then yields).
+
+    Raises:
+        click.UsageError: ``-o`` and ``--json`` both stdout, both given.
+    """
+    from click.core import ParameterSource
+
+    if not (is_stdout(output) and is_stdout(json_path)):
+        return output
+    if click.get_current_context().get_parameter_source("output") is ParameterSource.DEFAULT:
+        return None
+    raise click.UsageError("-o and --json cannot both be stdout")

@@ -5,12 +5,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import click
 
-from byoc_cli.cli.display import is_quiet, progress_bar
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
     SCALE,
@@ -29,6 +29,7 @@ from byoc_cli.cli.options import (
     weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
+from byoc_cli.cli.pairwise import StageProgress, pairwise_setup
 
 log = logging.getLogger("byoc")
 
@@ -38,47 +39,22 @@ REPORT_COMMAND = "byoc register-scans"
 MARKER = "register-scans"
 
 
-def pairwise_setup(
-    features: str, weights: Path | None, voxel_size: float | None, device: str, seed: int
-) -> tuple[Any, Any, dict | None]:
-    """The extractor and settings of ``byoc register`` for ``features``.
+@dataclass(frozen=True)
+class ScansOptions:
+    """The options of ``register-scans`` besides the scans, the folder and ``-q``."""
 
-    Returns:
-        ``(extractor, RegisterConfig, weights_info | None)``.
-    """
-    from byoc_cli.cli.register import make_registrar
-    from byoc_cli.pipeline.register import FEATURE_DEFAULTS, RegisterConfig
-
-    registrar = make_registrar(features, weights, voxel_size, device)
-    defaults = FEATURE_DEFAULTS[features]
-    config = RegisterConfig(
-        num_correspondences=defaults["num_correspondences"],
-        max_points=defaults["max_points"],
-        estimator=defaults["estimator"],
-        seed=seed,
-    )
-    return registrar.extractor, config, registrar.weights_info
-
-
-class StageProgress:
-    """Progress bars on stderr per stage (only on a terminal and without -q)."""
-
-    def __init__(self, quiet: bool) -> None:
-        import sys
-
-        self.progress = progress_bar() if not is_quiet(quiet) and sys.stderr.isatty() else None
-        self.tasks: dict[str, Any] = {}
-
-    def __call__(self, stage: str, done: int, total: int) -> None:
-        if self.progress is None:
-            return
-        if stage not in self.tasks:
-            self.tasks[stage] = self.progress.add_task(stage, total=total)
-        self.progress.update(self.tasks[stage], completed=done)
-
-    def close(self) -> None:
-        if self.progress is not None:
-            self.progress.__exit__(None, None, None)
+    merged: Path | None
+    merged_voxel: float
+    features: str
+    weights: Path | None
+    voxel_size: float | None
+    icp_voxel: float
+    min_fitness: float
+    all_pairs_max: int
+    neighbours: int
+    scale: float | None
+    seed: int
+    device: str
 
 
 def _is_scans_folder(folder: Path) -> bool:
@@ -242,23 +218,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     quiet_option("No progress bars; only errors on stderr.", expose_value=True),
 )
 @handle_errors
-def register_scans(
-    scans: tuple[Path, ...],
-    out: Path,
-    merged: Path | None,
-    merged_voxel: float,
-    features: str,
-    weights: Path | None,
-    voxel_size: float | None,
-    icp_voxel: float,
-    min_fitness: float,
-    all_pairs_max: int,
-    neighbours: int,
-    scale: float | None,
-    seed: int,
-    device: str,
-    quiet: bool,
-) -> None:
+def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: Any) -> None:
     """Register overlapping SCANS (point clouds) into the frame of the first one.
 
     Every overlapping pair is registered with the pairwise registration of `byoc register`
@@ -267,7 +227,8 @@ def register_scans(
     which prunes wrong pairs. A one-line summary goes to stdout.
     """
     started = time.perf_counter()
-    device = resolve_device(device)
+    options["device"] = resolve_device(options["device"])
+    settings = ScansOptions(**options)
     scans_list = list(scans)
     if len(scans_list) < 2:
         raise click.UsageError("register-scans needs at least 2 scans")
@@ -284,24 +245,7 @@ def register_scans(
 
     check_run_folder(out, _is_scans_folder, what="register-scans folder")
     with _results_folder(out):
-        unplaced = _run(
-            scans_list,
-            out,
-            merged,
-            merged_voxel,
-            features,
-            weights,
-            voxel_size,
-            icp_voxel,
-            min_fitness,
-            all_pairs_max,
-            neighbours,
-            scale,
-            seed,
-            device,
-            quiet,
-            started,
-        )
+        unplaced = _run(scans_list, out, settings, quiet, started)
     if unplaced:
         names = ", ".join(str(scans_list[k]) for k in unplaced[:5])
         click.echo(f"byoc: {len(unplaced)} scan(s) not placed: {names}", err=True)
@@ -309,22 +253,7 @@ def register_scans(
 
 
 def _run(
-    scans,
-    out,
-    merged,
-    merged_voxel,
-    features,
-    weights,
-    voxel_size,
-    icp_voxel,
-    min_fitness,
-    all_pairs_max,
-    neighbours,
-    scale,
-    seed,
-    device,
-    quiet,
-    started,
+    scans: list[Path], out: Path, options: ScansOptions, quiet: bool, started: float
 ) -> list[int]:
     """Register and write everything; returns the indices of the scans not placed."""
     from byoc_cli import __version__
@@ -337,16 +266,17 @@ def _run(
         {
             "report": out / "report.json",
             "trajectory": out / "trajectory.log",
-            "--merged": merged,
+            "--merged": options.merged,
             **{f"pose {k}": p for k, p in enumerate(pose_paths)},
         },
-        inputs=(*scans, weights),
+        inputs=(*scans, options.weights),
     )
     extractor, register_config, weights_info = pairwise_setup(
-        features, weights, voxel_size, device, seed
+        options.features, options.weights, options.voxel_size, options.device, options.seed
     )
     t0 = time.perf_counter()
-    auto = voxel_size is None and scale is None
+    scale = options.scale
+    auto = options.voxel_size is None and scale is None
     points = [_load(path, 1.0 if auto else scale) for path in scans]
     voxel_choice = None
     if auto:  # the scans' own size: brought to the features' scale when it is another
@@ -355,10 +285,10 @@ def _run(
             points = [p * scale for p in points]
     load_time = time.perf_counter() - t0
     config = ScansConfig(
-        all_pairs_max=all_pairs_max,
-        neighbours=neighbours,
-        icp_voxel=icp_voxel,
-        min_fitness=min_fitness,
+        all_pairs_max=options.all_pairs_max,
+        neighbours=options.neighbours,
+        icp_voxel=options.icp_voxel,
+        min_fitness=options.min_fitness,
     )
     progress = StageProgress(quiet)
     try:
@@ -403,10 +333,10 @@ def _run(
             "estimator": register_config.estimator,
             "num_correspondences": register_config.num_correspondences,
             "max_points": register_config.max_points,
-            "seed": seed,
+            "seed": options.seed,
             "scale": scale,
             "voxel_choice": None if voxel_choice is None else voxel_choice.as_dict(),
-            "merged_voxel_m": merged_voxel if merged is not None else None,
+            "merged_voxel_m": options.merged_voxel if options.merged is not None else None,
             **config_dict(config),
         },
         "weights": weights_info,
@@ -414,9 +344,11 @@ def _run(
         "pairs_per_s": len(result.pairs) / max(result.timings["pairs"], 1e-9),
     }
     merged_points = None
-    if merged is not None:
+    if options.merged is not None:
         t0 = time.perf_counter()
-        merged_points = merge_clouds(points, result.poses, merged_voxel * (scale or 1.0)) * unit
+        merged_points = (
+            merge_clouds(points, result.poses, options.merged_voxel * (scale or 1.0)) * unit
+        )
         report["timings_s"]["merge"] = time.perf_counter() - t0
     report["timings_s"]["command"] = time.perf_counter() - started
 
@@ -429,7 +361,7 @@ def _run(
             out / "trajectory.log", format_trajectory_log([poses[k] for k in placed], placed)
         )
         if merged_points is not None:
-            write_ply(merged, merged_points)
+            write_ply(options.merged, merged_points)
         write_json(out / "report.json", report)
         write_stdout(
             f"{out}: {len(placed)}/{len(scans)} scans placed, {len(kept)}/{len(result.pairs)} "

@@ -3,7 +3,8 @@
 Every function works on one pair (or on per-pair values) and knows nothing of files or
 methods. Transforms are ``T_tgt_src`` (4x4, column vectors, ``x_tgt = R x_src + t``).
 
-Protocols (method.md section 8; the names are those written in reports):
+Protocols (the paper's sections 4.1 and 4.2, docs/evaluation.md; the names are those written
+in reports):
 
 * ``fmr``: feature-match recall. A pair's *inlier ratio* is the share of feature nearest
   neighbours whose points land within ``tau1`` of each other under the ground truth; the pair
@@ -351,7 +352,7 @@ def chamfer_distance(points_a, points_b) -> float:
 def fused_chamfer(points_src, points_tgt, T_est, T_gt) -> float:
     """Chamfer between the two frames fused with the estimated and with the true pose.
 
-    Objective: ``chamfer(tgt ∪ T_est src, tgt ∪ T_gt src)`` (method.md section 8); 0 when
+    Objective: ``chamfer(tgt ∪ T_est src, tgt ∪ T_gt src)`` (the paper's section 4.1); 0 when
     ``T_est == T_gt``. Units as :func:`chamfer_distance`.
 
     Args:

@@ -1,6 +1,6 @@
 """Pairwise registration accuracy on posed RGB-D video or prepared pairs (``byoc eval-pairs``).
 
-The paper's pairwise table (method.md section 8): rotation error
+The paper's pairwise table (its section 4.1): rotation error
 ``arccos((tr(R_est R_gt^T) - 1) / 2)`` in degrees, translation error ``|t_est - t_gt|`` in cm,
 and the chamfer distance between the two frames fused with the estimated and with the true
 pose (:func:`~byoc_cli.evaluation.metrics.fused_chamfer`, in 1e-3 m^2, on the clouds voxelised

@@ -5,7 +5,7 @@ large planes (a cabinet on a floor, a corridor) the objective is nearly flat alo
 motions (sliding along the planes), and plain ICP drifts along them by whatever the noise
 says: started at the ground truth of the 28 ``tum_fr3_cabinet`` pairs (spacing 2), the plain
 multiscale ICP ended more than 10 cm away on 9 of them, this step on 2
-(``benchmarks/estimators.py --from-gt``, README). So the translations along directions that
+(``benchmarks/estimators.py --from-gt``, docs). So the translations along directions that
 almost no normal faces (``sum w (n . e)^2`` below ``sliding`` times the largest) are not
 moved: there the previous estimate (from feature matching) is kept. Following Zhang, Kaess
 and Singh ("On degeneracy of optimization-based state estimation problems", ICRA 2016), the

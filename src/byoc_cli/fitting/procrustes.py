@@ -1,6 +1,6 @@
 """Weighted Procrustes (Kabsch with weights), batched and differentiable, and ``FitResult``.
 
-Method (method.md section 5), in float64 whatever the input dtype:
+Method (the paper's section 3.1, Geometric Fitting), in float64 whatever the input dtype:
 
 * ``w_hat = w / (sum(w) + 1e-5)``;
 * weighted means ``mu = sum(w p) / sum(w)`` (normalised exactly, so that ``t`` has no
@@ -35,7 +35,7 @@ import torch
 from byoc_cli.errors import ShapeError
 from byoc_cli.geometry.transforms import apply_transform, make_transform
 
-#: Added to ``sum(w)`` in ``w_hat = w / (sum(w) + PROCRUSTES_EPS)`` (method.md section 5).
+#: Added to ``sum(w)`` in ``w_hat = w / (sum(w) + PROCRUSTES_EPS)`` (the paper's section 3.1).
 PROCRUSTES_EPS = 1e-5
 
 
@@ -100,7 +100,7 @@ def weighted_procrustes(
     """Weighted least-squares rigid transform, ``T_tgt_src`` with ``q ~ R p + t``.
 
     Objective: the rotation and translation that align the weighted, centred source points
-    onto the target points (method.md section 5; see the module docstring for the exact
+    onto the target points (the paper's section 3.1; see the module docstring for the exact
     weighting and for degenerate inputs). Batched over leading dimensions (broadcast), and
     differentiable with respect to the points and the weights on non-degenerate inputs.
 
@@ -160,7 +160,8 @@ def weighted_procrustes(
 def weighted_residuals(
     T_tgt_src: torch.Tensor, points_src: torch.Tensor, points_tgt: torch.Tensor
 ) -> torch.Tensor:
-    """Residual norms ``r_i = |R p_i + t - q_i|`` (L2, not squared; method.md section 6).
+    """Residual norms ``r_i = |R p_i + t - q_i|`` (L2, not squared; the paper's section 3.1,
+    Registration Loss).
 
     Args:
         T_tgt_src: ``(..., 4, 4)`` transform.

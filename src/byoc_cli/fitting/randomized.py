@@ -1,4 +1,5 @@
-"""Randomized weighted Procrustes: BYOC's test-time estimator (method.md section 5)."""
+"""Randomized weighted Procrustes: BYOC's test-time estimator (the paper's section 3.1, Geometric
+Fitting; docs/registering.md)."""
 
 from __future__ import annotations
 

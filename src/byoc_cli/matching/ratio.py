@@ -198,7 +198,8 @@ def ratio_test_correspondences(
     chunk_size: int | None = None,
     mutual: bool = False,
 ) -> Correspondences:
-    """Bidirectional Lowe-ratio correspondences (method.md section 4).
+    """Bidirectional Lowe-ratio correspondences (the paper's section 3.1, Correspondence
+    estimation).
 
     Objective: for every source point its two nearest target neighbours in feature space
     and for every target point its two nearest source neighbours; the match is the first

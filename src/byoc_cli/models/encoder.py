@@ -1,7 +1,7 @@
 """Sparse UNet geometric encoders, by name.
 
 The encoder turns the occupied voxels of a cloud into one L2-normalised feature per
-voxel (method.md section 2). Input: ``coords (N, 4)`` int64 rows ``[batch, x, y, z]``
+voxel (the paper's section 3.1). Input: ``coords (N, 4)`` int64 rows ``[batch, x, y, z]``
 (voxel indices at stride 1, several clouds told apart by the batch column) and
 ``feats (N, in_channels)`` float32 (constant ones in the pipeline). Output: ``(N, out_dim)``
 unit rows, row ``i`` describing ``coords[i]``.

@@ -1,4 +1,4 @@
-"""The visual encoder used during training (method.md section 3) and point sampling of its map.
+"""The visual encoder used during training (the paper's section 3.1) and point sampling of its map.
 
 The encoder maps an RGB image ``(B, 3, H, W)`` in [-1, 1] to a dense feature map
 ``(B, 32, H, W)`` whose per-pixel vectors are L2-normalised. :func:`sample_visual_features`

@@ -30,8 +30,8 @@ VISUAL_VARIANTS = ("byoc", "byoc-vis", "byoc-rot")
 GEOMETRIC_VARIANTS = ("byoc", "byoc-geo", "byoc-rot", "self-posed")
 #: metric losses of the ``self-posed`` variant
 METRIC_LOSSES = ("infonce", "hardest-contrastive")
-#: the variant of a run that names none: the paper's variants do not learn on a CPU (README,
-#: "What a CPU run learns"); this one made the shipped weights
+#: the variant of a run that names none: the paper's variants do not learn on a CPU
+#: (docs/experiments/2026-11-26-self-posed-campaign.md); this one made the shipped weights
 DEFAULT_VARIANT = "self-posed"
 #: the defaults of ``self-posed`` where they differ from the paper's: the recipe of the shipped
 #: weights (run ``ft1``: their metadata's ``training.recipe``, steps and ``init_weights``), a
@@ -70,7 +70,8 @@ RESUMABLE_KEYS = frozenset(
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Every setting of a training run (method.md sections 1, 6, 7).
+    """Every setting of a training run (the paper's sections 3 and 4, Training Details;
+    docs/training.md).
 
     Attributes:
         rgbd_dir: training video folders (each may hold several sequences).
@@ -249,6 +250,11 @@ class TrainConfig:
     @property
     def uses_geometric(self) -> bool:
         return self.variant in GEOMETRIC_VARIANTS
+
+    def round_of(self, step: int) -> int:
+        """``self-posed``: the round (from 1) that the step after ``step`` completed steps
+        belongs to (always 1 without ``round_steps``)."""
+        return 1 + step // self.round_steps if self.round_steps else 1
 
     def to_dict(self) -> dict[str, Any]:
         """The public keys and their values (JSON-ready)."""

@@ -1,4 +1,5 @@
-"""Training and validation pairs from RGB-D video (method.md section 1).
+"""Training and validation pairs from RGB-D video (the paper's section 4, Datasets;
+docs/training.md).
 
 A pair ``(i, j)`` of one sequence (``j = i + spacing``) gives two views. View 0 is frame
 ``i`` (the *target*), view 1 is frame ``j`` (the *source*): registration estimates

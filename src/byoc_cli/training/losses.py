@@ -1,4 +1,4 @@
-"""BYOC's losses (method.md section 6), exactly.
+"""BYOC's losses (the paper's sections 3.1, Registration Loss, and 3.2), exactly.
 
 * residual ``r_i = |R p_i + t - q_i|`` (L2 norm, not squared);
 * visual registration loss ``sum_i (w_i / sum w) r_i``;

@@ -3,7 +3,8 @@
 One forward pass computes the per-sample losses of a batch of :class:`PairSample` s and
 returns their batch means. Registration direction: view 1 is the source, view 0 the
 target (``T_0_1``). The model never changes its own mode: byoc-rot's augmentation is
-applied only when ``self.training`` is true (method.md 10.1).
+applied only when ``self.training`` is true (the authors' implementation gated it on a call
+that is always false: docs/training.md).
 """
 
 from __future__ import annotations

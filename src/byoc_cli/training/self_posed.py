@@ -14,8 +14,9 @@ InfoNCE, or FCGF's hardest-contrastive) on up to ``num_positives`` dense corresp
 pair. Validation (``val_dir``, posed sequences) measures the feature-match recall of frame
 pairs ``val_spacing`` frames apart.
 
-The run folder, checkpoints, metrics and exported weights follow the other variants
-(:mod:`byoc_cli.training.trainer`).
+The loop (:mod:`byoc_cli.training.loop`) owns the run folder, the optimiser (Adam, fused),
+checkpoints, records and export, as for the paper's variants; this module supplies the data
+and the step (:class:`SelfPosedTask`).
 """
 
 from __future__ import annotations
@@ -32,14 +33,7 @@ import torch
 from byoc_cli.errors import DatasetError, InputError
 from byoc_cli.io.atomic import atomic_write_text
 from byoc_cli.io.inputs import read_json_input
-from byoc_cli.training.checkpoint import (
-    capture_rng_state,
-    load_latest_checkpoint,
-    restore_rng_state,
-    save_checkpoint,
-)
 from byoc_cli.training.config import TrainConfig
-from byoc_cli.training.guard import check_finite, step_guard
 from byoc_cli.training.metric_loss import hardest_contrastive, info_nce, sample_matches
 from byoc_cli.training.pseudo_poses import (
     LearnedStart,
@@ -51,6 +45,7 @@ from byoc_cli.training.pseudo_poses import (
     pairs_from_json,
     pairs_to_json,
 )
+from byoc_cli.training.run_folder import load_initial_weights
 from byoc_cli.training.self_posed_data import (
     AugmentConfig,
     CachedFrame,
@@ -76,11 +71,6 @@ def pseudo_config(config: TrainConfig, round_number: int = 1) -> PseudoPoseConfi
     if round_number > 1:
         gaps += tuple(g for g in config.round_gaps if g not in config.pair_gaps)
     return PseudoPoseConfig(voxel_size=config.voxel_size, gaps=gaps, seed=config.seed)
-
-
-def round_of(step: int, config: TrainConfig) -> int:
-    """The round (from 1) that the step after ``step`` completed steps belongs to."""
-    return 1 + step // config.round_steps if config.round_steps else 1
 
 
 def pairs_folder(run_dir: Path, round_number: int) -> Path:
@@ -269,83 +259,62 @@ def training_step(
     }
 
 
-def build_optimizer(encoder: torch.nn.Module, config: TrainConfig) -> torch.optim.Adam:
-    """Adam with the config's lr, eps and weight decay, fused (one kernel for all tensors:
-    a quarter of the for-loop Adam's time on a compact encoder's 6.5 M parameters)."""
-    return torch.optim.Adam(
-        encoder.parameters(),
-        lr=config.lr,
-        eps=config.adam_eps,
-        weight_decay=config.weight_decay,
-        fused=True,
-    )
+class SelfPosedTask:
+    """The ``self-posed`` variant's encoder, pairs, step and validation (a
+    :class:`~byoc_cli.training.loop.TrainTask`).
 
+    One process on the CPU. Before the first step of each round the round's pairs are loaded
+    (estimated on first use, :func:`load_or_estimate_pairs`) and logged as a ``round`` record;
+    the end of a round is checkpointed, so a resumed run poses the next round itself.
 
-def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
-    """Train (or continue) a ``self-posed`` run; returns a ``trainer.TrainResult``."""
-    from byoc_cli.models.encoder import build_encoder
-    from byoc_cli.training.plot import plot_metrics, read_metrics
-    from byoc_cli.training.run_folder import (
-        WEIGHTS_FILE,
-        load_initial_weights,
-        start_run_folder,
-        truncate_metrics,
-        write_run_config,
-    )
-    from byoc_cli.training.trainer import METRICS_FILE, PLOT_FILE, StepInfo, TrainResult
+    Raises:
+        DatasetError: no training sequence, or no pair passed verification.
+    """
 
-    run_dir = Path(config.out)
-    if not resume:
-        start_run_folder(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    sequences = discover_training_sequences(config)
-    data_names = [s.name for s in sequences]
-    write_run_config(run_dir, config, {"world_size": 1, "data": data_names})
-    val_pairs = validation_pairs(config) if config.val_dir else []
+    fused_optimizer = True
 
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        encoder = build_encoder(config.arch)
-    optimizer = build_optimizer(encoder, config)
-    generator = torch.Generator().manual_seed(config.seed)
-    generators = {"sample": generator}
-    step = 0
-    if resume:
-        found = load_latest_checkpoint(run_dir)
-        if found is not None:
-            state, _ = found
-            encoder.load_state_dict(state["model"])
-            optimizer.load_state_dict(state["optimizer"])
-            step = int(state["step"])
-            restore_rng_state(state["rng"][0], generators)
-    if step == 0:
-        load_initial_weights(encoder, config)
-    metrics_path = run_dir / METRICS_FILE
-    truncate_metrics(metrics_path, step)
-    result = TrainResult(run_dir, None, None, step)
+    def __init__(self, config: TrainConfig, info: Any = None) -> None:
+        from byoc_cli.models.encoder import build_encoder
 
-    def write_record(record: dict[str, Any]) -> None:
-        with open(metrics_path, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(record, sort_keys=True) + "\n")
+        del info  # one process
+        self.config = config
+        self.run_dir = Path(config.out)
+        self.sequences = discover_training_sequences(config)
+        self.data_names = [s.name for s in self.sequences]
+        self.val_pairs = validation_pairs(config) if config.val_dir else []
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed)
+            self.model = build_encoder(config.arch)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.generators = {"sample": self.generator}
+        self.frames: dict[tuple[int, int], CachedFrame] = {}
+        self.flat: list[tuple[int, PseudoPair]] = []
+        self.round: int | None = None
 
-    def run_validation(at_step: int) -> dict[str, float]:
-        if not val_pairs:
-            return {}
-        t0 = time.perf_counter()
-        metrics = feature_match_validation(encoder, val_pairs, config.voxel_size, config.seed)
-        metrics["val_time_s"] = time.perf_counter() - t0
-        write_record({"kind": "val", "step": at_step, **metrics})
-        callbacks.call("on_validation", at_step, metrics)
-        return metrics
+    @property
+    def validates(self) -> bool:
+        return bool(self.val_pairs)
 
-    frames: dict[tuple[int, int], CachedFrame] = {}
+    def load_initial_weights(self) -> None:
+        load_initial_weights(self.model, self.config)
 
-    def load_round(number: int) -> list[tuple[int, PseudoPair]]:
-        nonlocal frames
-        records = load_or_estimate_pairs(
-            config, run_dir, sequences, round_number=number, encoder=encoder
+    def data_position(self) -> dict[str, int]:
+        # the pairs are drawn from ``generator``: its state is the position
+        return {"epoch": 0, "batch_in_epoch": 0}
+
+    def restore_position(self, state: dict[str, Any]) -> None:
+        del state
+
+    def prepare(self, step: int, records: Any) -> None:
+        """Load the pairs of the round of the next step when it is not the loaded one."""
+        number = self.config.round_of(step)
+        if number == self.round:
+            return
+        config = self.config
+        found = load_or_estimate_pairs(
+            config, self.run_dir, self.sequences, round_number=number, encoder=self.model
         )
-        pairs = [pairs_from_json(r) for r in records]
+        pairs = [pairs_from_json(r) for r in found]
         flat = [(s, p) for s, seq_pairs in enumerate(pairs) for p in seq_pairs]
         if not flat:
             gaps = ", ".join(map(str, config.pair_gaps))
@@ -354,100 +323,39 @@ def train_self_posed(config: TrainConfig, resume: bool, callbacks: Any) -> Any:
                 f"no self-posed pair passed verification (round {number}): give longer "
                 f"sequences, or smaller frame gaps (pair_gaps in --config, now {gaps})",
             )
-        frames = build_frame_cache(config, sequences, pairs, frames)
-        logged = read_metrics(metrics_path) if metrics_path.exists() else []
+        self.frames = build_frame_cache(config, self.sequences, pairs, self.frames)
+        logged = records.read()
         if not any(r.get("kind") == "round" and r.get("round") == number for r in logged):
-            write_record(round_record(number, step, records))
-        return flat
+            records.write(round_record(number, step, found))
+        self.flat, self.round = flat, number
 
-    def checkpoint(at_step: int) -> None:
-        state = {
-            "model": encoder.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "step": at_step,
-            "epoch": 0,
-            "batch_in_epoch": 0,
-            "rng": [capture_rng_state(generators)],
-            "config": config.to_dict(),
-            "world_size": 1,
-        }
-        path = save_checkpoint(run_dir, at_step, state, keep=config.keep_checkpoints)
-        callbacks.call("on_checkpoint", at_step, path)
+    def next_batch(self) -> list[tuple[CachedFrame, CachedFrame, torch.Tensor]]:
+        """``batch_size`` pairs drawn with replacement: ``(frame_i, frame_j, T_i_j)``."""
+        pick = torch.randint(len(self.flat), (self.config.batch_size,), generator=self.generator)
+        batch = []
+        for k in pick.tolist():
+            s, pair = self.flat[k]
+            frames = self.frames[(s, pair.i)], self.frames[(s, pair.j)]
+            batch.append((*frames, torch.from_numpy(pair.T_i_j)))
+        return batch
 
-    current_round = round_of(step, config)
-    flat = load_round(current_round)
-    callbacks.call("on_start", step, config.steps)
-    if config.val_every and step == 0:
-        result.initial_validation = result.validation = run_validation(0)
-    encoder.train()
-    window: list[dict[str, float]] = []
-    t_window = time.perf_counter()
-    try:
-        while step < config.steps:
-            if round_of(step, config) != current_round:
-                current_round = round_of(step, config)
-                flat = load_round(current_round)
-            pick = torch.randint(len(flat), (config.batch_size,), generator=generator)
-            batch = []
-            for k in pick.tolist():
-                s, pair = flat[k]
-                batch.append(
-                    (frames[(s, pair.i)], frames[(s, pair.j)], torch.from_numpy(pair.T_i_j))
-                )
-            with step_guard(encoder, step + 1, config.lr):
-                loss, values = training_step(encoder, batch, config, generator)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                check_finite(loss, encoder.parameters(), step + 1, config.lr)
-            step += 1
-            window.append(values)
-            last = step == config.steps
-            elapsed = time.perf_counter() - t_window
-            rate = len(window) / elapsed if elapsed > 0 else 0.0
-            eta = (config.steps - step) / rate if rate > 0 else float("nan")
-            callbacks.call(
-                "on_step", StepInfo(step, config.steps, {"loss": values["loss"]}, rate, eta)
-            )
-            if (config.log_every and step % config.log_every == 0) or last:
-                mean = {k: float(np.mean([w[k] for w in window])) for k in window[0]}
-                record = {
-                    "kind": "train",
-                    "step": step,
-                    **mean,
-                    "pairs_per_s": len(window) * config.batch_size / elapsed if elapsed else None,
-                    "steps_per_s": rate,
-                    "lr": config.lr,
-                    "time": time.time(),
-                }
-                write_record(record)
-                callbacks.call("on_log", record)
-                window, t_window = [], time.perf_counter()
-            if config.val_every and (step % config.val_every == 0 or last):
-                result.validation = run_validation(step)
-                plot_metrics(read_metrics(metrics_path), run_dir / PLOT_FILE, "self-posed")
-            round_end = config.round_steps and step % config.round_steps == 0
-            if (
-                (config.checkpoint_every and step % config.checkpoint_every == 0)
-                or last
-                or round_end
-            ):
-                checkpoint(step)
-    except KeyboardInterrupt:
-        if step > 0:
-            checkpoint(step)
-        raise
-    result.steps = step
-    records = read_metrics(metrics_path)
-    train_records = [r for r in records if r.get("kind") == "train"]
-    if train_records:
-        result.first_loss = train_records[0]["loss"]
-        result.last_loss = train_records[-1]["loss"]
-    plot_metrics(records, run_dir / PLOT_FILE, "self-posed")
-    export = {"train_loss": result.last_loss} if result.last_loss is not None else {}
-    export.update({f"val_{k}": v for k, v in result.validation.items() if k != "val_time_s"})
-    result.weights_path = run_dir / WEIGHTS_FILE
-    result.weights_sha256 = export_encoder(
-        encoder, config, result.weights_path, data_names, step, export
-    )
-    return result
+    def step(self, module: torch.nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
+        return training_step(module, batch, self.config, self.generator)
+
+    def summarize(self, window: list[dict[str, float]], seconds: float) -> dict[str, float]:
+        mean = {k: float(np.mean([w[k] for w in window])) for k in window[0]}
+        pairs = len(window) * self.config.batch_size
+        return {**mean, "pairs_per_s": pairs / seconds if seconds else None}
+
+    def validate(self) -> dict[str, float] | None:
+        if not self.val_pairs:
+            return None
+        config = self.config
+        return feature_match_validation(self.model, self.val_pairs, config.voxel_size, config.seed)
+
+    def checkpoint_due(self, step: int) -> bool:
+        """The end of a round."""
+        return bool(self.config.round_steps) and step % self.config.round_steps == 0
+
+    def export(self, path: Path, steps: int, metrics: dict[str, float]) -> str:
+        return export_encoder(self.model, self.config, path, self.data_names, steps, metrics)

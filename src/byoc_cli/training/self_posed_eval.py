@@ -112,9 +112,7 @@ def export_encoder(
             "round_gaps",
         )
     }
-    from byoc_cli.training.self_posed import round_of  # (it imports this module)
-
-    recipe["rounds"] = round_of(max(steps - 1, 0), config)
+    recipe["rounds"] = config.round_of(max(steps - 1, 0))
     return write_encoder(encoder, config, path, data, steps, metrics, recipe=recipe, dtype=dtype)
 
 

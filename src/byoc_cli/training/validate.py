@@ -1,15 +1,15 @@
 """Validation during training: register posed pairs with the geometric encoder only.
 
-The test-time pipeline (method.md 8): the kept points of each view (voxelised, first point
-per voxel), their geometric features, ratio-test top-200 correspondences per direction and
-randomized Procrustes (100 subsets of 20). Source = view 1, target = view 0; the
+The test-time pipeline (the paper's section 4.1): the kept points of each view (voxelised,
+first point per voxel), their geometric features, ratio-test top-200 correspondences per
+direction and randomized Procrustes (100 subsets of 20). Source = view 1, target = view 0; the
 estimate is compared with ``T_gt = inv(T_world_cam_i) @ T_world_cam_j``.
 
 Besides the pose errors, validation measures the features themselves: the share of the
-400 correspondences that are inliers under ``T_gt`` (``|T_gt p - q| < 10 cm``, method.md 8's
-tau1) and the share of pairs above tau2 = 5 % (BYOC's "corr" feature-match recall). On
-pairs that barely move, inliers under ``T_gt`` can be as close under the identity, so the
-share is read together with the pose accuracy.
+400 correspondences that are inliers under ``T_gt`` (``|T_gt p - q| < 10 cm``, the tau1 of the
+paper's section 4.2) and the share of pairs above tau2 = 5 % (BYOC's "corr" feature-match
+recall). On pairs that barely move, inliers under ``T_gt`` can be as close under the identity,
+so the share is read together with the pose accuracy.
 """
 
 from __future__ import annotations

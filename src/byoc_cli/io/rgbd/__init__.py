@@ -1,4 +1,5 @@
-"""RGB-D video readers, frame pairs and the 128x128 preprocessing of method.md section 1.
+"""RGB-D video readers, frame pairs and the 128x128 preprocessing of the paper's
+variants (docs/training.md).
 
 One module per idea:
 

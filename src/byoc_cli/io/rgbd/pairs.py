@@ -1,10 +1,10 @@
-"""Frame pairs of one sequence for training and validation (method.md section 1)."""
+"""Frame pairs of one sequence for training and validation (the paper's section 4, Datasets)."""
 
 from __future__ import annotations
 
 
 def make_pairs(num_frames: int, spacing: int = 20, mode: str = "train") -> list[tuple[int, int]]:
-    """Frame pairs of one sequence (method.md section 1).
+    """Frame pairs of one sequence (the paper's section 4, Datasets).
 
     ``"train"``: every frame ``i`` with ``i + spacing`` (all starts). ``"val"``: every
     ``spacing``-th frame, consecutive ones paired: ``(0, s), (s, 2s), ...``.

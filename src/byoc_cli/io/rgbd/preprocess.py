@@ -1,4 +1,5 @@
-"""The 128x128 frame preprocessing of method.md section 1: centre crop, resize, intrinsics."""
+"""The 128x128 frame preprocessing of the paper's variants (docs/training.md): centre crop,
+resize, intrinsics."""
 
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ class PreprocessedFrame(NamedTuple):
 def preprocess_frame(
     depth_m: np.ndarray, color: np.ndarray | None, K: np.ndarray, size: int = 128
 ) -> PreprocessedFrame:
-    """Centre-crop a frame to a square and resize it to ``size x size`` (method.md section 1).
+    """Centre-crop a frame to a square and resize it to ``size x size`` (docs/training.md).
 
     Depth: the centre square (side ``min(H, W)``) resized with nearest neighbour (output pixel
     centre ``c`` reads the source pixel that contains ``c``). Colour: the SAME square resized

@@ -2,8 +2,8 @@
 
 ``depth/N.png`` (mm), ``color/N.jpg``, ``pose/N.txt`` (4x4 camera-to-world),
 ``intrinsic/intrinsic_depth.txt`` (4x4). The DEPTH intrinsics are used, never the colour ones
-(method.md 10.5); colour, shot at another resolution, is resized to the depth resolution when
-read.
+(the authors' implementation used the colour ones, about 0.5 % off: docs/training.md);
+colour, shot at another resolution, is resized to the depth resolution when read.
 """
 
 from __future__ import annotations
