@@ -18,8 +18,16 @@ from byoc_cli.cli.display import is_quiet, progress_bar
 log = logging.getLogger("byoc")
 
 
-def registrar(features: str, weights: Path | None, voxel_size: float | str | None, device: str):
-    """The API's :class:`~byoc_cli.api.Registrar` for a command's options.
+def registrar(
+    features: str,
+    weights: Path | None,
+    voxel_size: float | str | None,
+    device: str,
+    fallback: str = "none",
+    min_confidence: float | None = None,
+):
+    """The API's :class:`~byoc_cli.api.Registrar` for a command's options (``fallback``
+    runs below ``min_confidence``, with byoc features only).
 
     Raises:
         click.UsageError: byoc features, no ``--weights`` and no shipped weights.
@@ -34,7 +42,10 @@ def registrar(features: str, weights: Path | None, voxel_size: float | str | Non
             "--features byoc needs --weights PATH (this install ships no trained weights); "
             "or use --features fpfh"
         )
-    return Registrar(features, weights, voxel_size, device)
+    use = fallback if fallback != "none" and features == "byoc" else None
+    return Registrar(
+        features, weights, voxel_size, device, fallback=use, fallback_below=min_confidence
+    )
 
 
 def pairwise_setup(

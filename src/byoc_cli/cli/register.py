@@ -35,6 +35,7 @@ from byoc_cli.cli.output import (
     write_stdout,
     write_stdout_bytes,
 )
+from byoc_cli.cli.pairwise import registrar
 from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 log = logging.getLogger("byoc")
@@ -112,34 +113,8 @@ register_options = apply(
 )
 
 
-def make_registrar(
-    features: str,
-    weights: Path | None,
-    voxel_size: float | str | None,
-    device: str,
-    fallback: str = "none",
-    min_confidence: float | None = None,
-):
-    """The API's :class:`~byoc_cli.api.Registrar` for the command's options (``fallback``
-    runs below ``min_confidence``, with byoc features only).
-
-    Raises:
-        click.UsageError: byoc features, no ``--weights`` and no shipped weights.
-    """
-    from byoc_cli.api import Registrar
-    from byoc_cli.pipeline.default_weights import default_weights_path
-
-    if features == "fpfh" and weights is not None:
-        log.warning("--weights %s is not used: --features fpfh needs no weights", weights)
-    if features == "byoc" and weights is None and default_weights_path() is None:
-        raise click.UsageError(
-            "--features byoc needs --weights PATH (this install ships no trained weights); "
-            "or use --features fpfh"
-        )
-    use = fallback if fallback != "none" and features == "byoc" else None
-    return Registrar(
-        features, weights, voxel_size, device, fallback=use, fallback_below=min_confidence
-    )
+#: the registrar of the command's options (one definition, in a module no command owns)
+make_registrar = registrar
 
 
 def match_settings(
