@@ -138,7 +138,7 @@ class RefineCloud:
                 size, _, radius = self.levels[level]
                 q = self._average(level)
                 n = surface_normals(q, NORMAL_CELL * radius)
-                self._targets[level] = (q, n, CellIndex(q, size))
+                self._targets[level] = (q, n, CellIndex(q, size, SEARCH_REACH[level]))
             return self._targets[level]
 
     def prepare(
