@@ -172,12 +172,20 @@ class CellIndex:
             reach, when its box has at most :data:`DENSE_CELLS` cells (a search is then one
             lookup per neighbour cell instead of a binary search per column; the results
             are the same).
+        origin: ``(3,)`` the grid's origin, a cell corner at or below every point (default:
+            :func:`grid_origin` of ``points``): an index of part of a cloud on the cloud's grid.
     """
 
-    def __init__(self, points: torch.Tensor, size: float, dense_reach: int | None = None) -> None:
+    def __init__(
+        self,
+        points: torch.Tensor,
+        size: float,
+        dense_reach: int | None = None,
+        origin: torch.Tensor | None = None,
+    ) -> None:
         self.points = points
         self.size = float(size)
-        self.origin = grid_origin(points, size)
+        self.origin = grid_origin(points, size) if origin is None else origin
         # (3, N + 1) float32 offsets from the origin, for distances; column N is a point at
         # infinity that stands for "no point" (its distance to anything is inf)
         self.none = len(points)
