@@ -12,10 +12,14 @@ Prints, on the 3DMatch sample fragments (or any pair given), at 2.5 cm:
     shipped weights, defaults), and their ratio;
   * whole `byoc register` processes on the pair: the default (shipped weights, learned-feature
     defaults) against `--features fpfh`, interleaved, medians and their ratio;
+  * `--baseline SRC`: also the default command of another source tree (e.g. `../main/src`,
+    run with `PYTHONPATH=SRC`) interleaved with the others, in the load matrix and the batch
+    part: before and after a change, measured in the same minutes;
   * `--only load`: whole processes under load (`--cases`: idle; one core taken by a busy
     loop (`busy`) or every core (`allbusy`); `--copies` copies of each command at once, as
     `xargs -P` runs them (`parallel`)) on three inputs
-    (`--inputs`: the fragment pair; a full-resolution TUM depth-frame pair, 640 x 480 PNGs;
+    (`--inputs`: the fragment pair; the README's demo pair (`demo`); a full-resolution TUM
+    depth-frame pair, 640 x 480 PNGs;
     a large pair of 1-2 M points each fused at run time from TUM fr1_desk depth frames with
     their ground-truth poses): the default, `--features fpfh` and Open3D's FPFH + RANSAC
     (benchmarks/o3d_fpfh_ransac.py) interleaved, medians of wall and CPU seconds per command,
@@ -23,7 +27,9 @@ Prints, on the 3DMatch sample fragments (or any pair given), at 2.5 cm:
 
 Usage: python benchmarks/register.py [--repeats 5] [--only batch|whole|load] [SOURCE TARGET]
        python benchmarks/register.py --only load [--cases idle,busy,parallel]
-           [--inputs fragment,depth,large] [--copies 3] [--repeats 5]
+           [--inputs fragment,demo,depth,large] [--copies 3] [--repeats 5]
+           [--variants default,fpfh,open3d] [--baseline SRC]
+       python benchmarks/register.py --only batch --no-loop [--repeats 3] [--baseline SRC]
 """
 
 from __future__ import annotations
@@ -155,26 +161,52 @@ def _sample_pairs(folder: Path) -> list[tuple[Path, Path]]:
     return pairs
 
 
-def _timed_batch(listing: Path, out: Path, extra: list[str]) -> tuple[float, float]:
-    """Wall and CPU seconds of one `byoc register-batch` process."""
+def _env(source: Path | None) -> dict[str, str] | None:
+    """The environment of a command of another source tree (None: this one's)."""
+    if source is None:
+        return None
+    path = os.environ.get("PYTHONPATH")
+    return {**os.environ, "PYTHONPATH": f"{source}{os.pathsep}{path}" if path else str(source)}
+
+
+def _timed_batch(
+    listing: Path, out: Path, extra: list[str], source: Path | None = None
+) -> tuple[float, float]:
+    """Wall and CPU seconds of one `byoc register-batch` process (``source``: of that tree)."""
     start = time.perf_counter()
-    proc = subprocess.Popen([*BYOC, "register-batch", str(listing), "--out-dir", str(out), *extra])
+    proc = subprocess.Popen(
+        [*BYOC, "register-batch", str(listing), "--out-dir", str(out), *extra], env=_env(source)
+    )
     _, status, usage = os.wait4(proc.pid, 0)
     assert os.waitstatus_to_exitcode(status) in (0, 3), status
     return time.perf_counter() - start, usage.ru_utime + usage.ru_stime
 
 
-def batch_vs_loop(folder: Path, repeats: int, loop: bool = True) -> dict:
-    """Whole-process pairs per second: `register-batch` (default and --features fpfh,
-    interleaved, ``repeats`` each) and, once, one `byoc register` process per pair."""
+def batch_vs_loop(
+    folder: Path, repeats: int, loop: bool = True, baseline: Path | None = None
+) -> dict:
+    """Whole-process pairs per second: `register-batch` (default, --features fpfh and the
+    ``baseline`` tree's default, interleaved, ``repeats`` each) and, once, one `byoc register`
+    process per pair."""
     pairs = _sample_pairs(folder)
-    runs: dict[str, list[tuple[float, float]]] = {"default": [], "fpfh": []}
+    variants = [("default", [], None), ("fpfh", ["--features", "fpfh"], None)]
+    if baseline is not None:
+        variants.append(("baseline", [], baseline))
+    runs: dict[str, list[tuple[float, float]]] = {name: [] for name, _, _ in variants}
+    same_as_baseline = None
     with tempfile.TemporaryDirectory() as tmp:
         listing = Path(tmp) / "pairs.txt"
         listing.write_text("".join(f"{a} {b}\n" for a, b in pairs))
         for k in range(repeats):
-            for name, extra in (("default", []), ("fpfh", ["--features", "fpfh"])):
-                runs[name].append(_timed_batch(listing, Path(tmp) / f"{name}{k}", extra))
+            for name, extra, source in variants:
+                out = Path(tmp) / f"{name}{k}"
+                runs[name].append(_timed_batch(listing, out, extra, source))
+        if baseline is not None:
+            same_as_baseline = all(
+                (Path(tmp) / "default0" / f"{a.stem}__{b.stem}.txt").read_bytes()
+                == (Path(tmp) / "baseline0" / f"{a.stem}__{b.stem}.txt").read_bytes()
+                for a, b in pairs
+            )
         loop_s, same = None, None
         if loop:
             start = time.perf_counter()
@@ -187,12 +219,20 @@ def batch_vs_loop(folder: Path, repeats: int, loop: bool = True) -> dict:
                 == (Path(tmp) / "default0" / f"{a.stem}__{b.stem}.txt").read_bytes()
                 for k, (a, b) in enumerate(pairs)
             )
-    return {"pairs": len(pairs), "runs": runs, "loop_s": loop_s, "same": same}
+    return {
+        "pairs": len(pairs),
+        "runs": runs,
+        "loop_s": loop_s,
+        "same": same,
+        "same_as_baseline": same_as_baseline,
+    }
 
 
-def print_batch(folder: Path, repeats: int = 1, loop: bool = True) -> None:
+def print_batch(
+    folder: Path, repeats: int = 1, loop: bool = True, baseline: Path | None = None
+) -> None:
     load_before = os.getloadavg()[0]
-    b = batch_vs_loop(folder, repeats, loop)
+    b = batch_vs_loop(folder, repeats, loop, baseline)
     n = b["pairs"]
     print(
         f"\nwhole process, {n} pairs ({folder.name}), median of {repeats} "
@@ -202,9 +242,17 @@ def print_batch(folder: Path, repeats: int = 1, loop: bool = True) -> None:
     for name, rs in b["runs"].items():
         wall, cpu = statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs)
         med[name] = wall
-        label = "`byoc register-batch`" + (" --features fpfh" if name == "fpfh" else "")
+        label = "`byoc register-batch`" + {
+            "fpfh": " --features fpfh",
+            "baseline": " (baseline)",
+        }.get(name, "")
         print(f"  {label:<40} {wall:6.1f} s, CPU {cpu:6.1f} s, {n / wall:.2f} pairs/s")
     print(f"  default / fpfh wall: {med['default'] / med['fpfh']:.2f}; bar: >= 2 pairs/s")
+    if b["same_as_baseline"] is not None:
+        print(
+            f"  default / baseline wall: {med['default'] / med['baseline']:.2f}; T files "
+            f"byte-identical to the baseline's: {b['same_as_baseline']}"
+        )
     if b["loop_s"] is not None:
         loop_rate = n / b["loop_s"]
         print(
@@ -240,6 +288,8 @@ TUM_LARGE = DATA / "rgbd" / "tum_fr1_desk_full"  # Kinect (fr1), every second fr
 LARGE_FRAMES = ((0, 2, 4, 6, 8), (10, 12, 14, 16, 18))
 O3D_PEER = Path(__file__).resolve().parent / "o3d_fpfh_ransac.py"
 VARIANTS = ("default", "fpfh", "open3d")
+#: the README's demo pair
+DEMO = DATA / "pairs" / "3dmatch_demo"
 
 
 class Input(NamedTuple):
@@ -291,6 +341,8 @@ def large_pair(folder: Path) -> Input:
 
 
 def _command(variant: str, pair: Input, out: Path) -> list[str]:
+    """The command of a variant: ``default``, ``baseline`` (the default, of the baseline
+    tree: :func:`_env`), ``fpfh`` or ``open3d``."""
     if variant == "open3d":
         extra = pair.options
         return [sys.executable, str(O3D_PEER), str(pair.source), str(pair.target), *extra]
@@ -299,15 +351,18 @@ def _command(variant: str, pair: Input, out: Path) -> list[str]:
     return [*BYOC, "register", str(pair.source), str(pair.target), *pair.options, *features, *files]
 
 
-def _run_copies(variant: str, pair: Input, copies: int, tmp: Path) -> tuple[float, float, dict]:
+def _run_copies(
+    variant: str, pair: Input, copies: int, tmp: Path, baseline: Path | None = None
+) -> tuple[float, float, dict]:
     """``copies`` processes of one command at once: wall seconds until the last ends, median
     CPU seconds (user + system) per process, and the first copy's stage timings."""
+    env = _env(baseline) if variant == "baseline" else None
     outs = [tmp / f"{variant}_{k}" for k in range(copies)]
     for out in outs:
         out.mkdir(exist_ok=True)
     start = time.perf_counter()
     procs = [
-        subprocess.Popen(_command(variant, pair, out), stdout=subprocess.PIPE, text=True)
+        subprocess.Popen(_command(variant, pair, out), stdout=subprocess.PIPE, text=True, env=env)
         for out in outs
     ]
     cpu, stdout = [], []
@@ -341,19 +396,35 @@ def _case(name: str):
             loop.wait()
 
 
-def load_matrix(pairs: list[Input], cases: list[str], copies: int, repeats: int) -> None:
+def load_matrix(
+    pairs: list[Input],
+    cases: list[str],
+    copies: int,
+    repeats: int,
+    variants: tuple[str, ...] = VARIANTS,
+    baseline: Path | None = None,
+) -> None:
     """Whole processes of every variant on every pair in every case, interleaved; prints
-    medians, ratios and stages."""
+    medians, ratios and stages (and whether the default's T file is the baseline's)."""
+    if baseline is not None and "baseline" not in variants:
+        variants = (*variants, "baseline")
     for case in cases:
         n = copies if case == "parallel" else 1
         for pair in pairs:
-            runs: dict[str, list] = {v: [] for v in VARIANTS}
+            runs: dict[str, list] = {v: [] for v in variants}
             load_before = os.getloadavg()[0]
+            same = None
             with _case(case), tempfile.TemporaryDirectory() as tmp:
                 for _ in range(repeats):
-                    for variant in VARIANTS:
-                        runs[variant].append(_run_copies(variant, pair, n, Path(tmp)))
+                    for variant in variants:
+                        runs[variant].append(_run_copies(variant, pair, n, Path(tmp), baseline))
+                if "baseline" in variants and "default" in variants:
+                    same = (Path(tmp) / "default_0" / "T.txt").read_bytes() == (
+                        Path(tmp) / "baseline_0" / "T.txt"
+                    ).read_bytes()
             _print_matrix_row(case, n, pair, runs, load_before, os.getloadavg()[0])
+            if same is not None:
+                print(f"  default's T file byte-identical to the baseline's: {same}")
 
 
 def _print_matrix_row(case, copies, pair, runs, load_before, load_after) -> None:
@@ -371,13 +442,12 @@ def _print_matrix_row(case, copies, pair, runs, load_before, load_after) -> None
         f"\n{pair.name} ({pair.source.name} -> {pair.target.name}), {what}, median of "
         f"{len(runs['default'])} (load average {load_before:.2f} -> {load_after:.2f}):"
     )
-    fw, fc = med["fpfh"]
-    ow, oc = med["open3d"]
+    peers = [p for p in ("fpfh", "open3d", "baseline") if p in med]
     for v, (w, c) in med.items():
-        print(
-            f"  {v:<8} wall {w:6.2f} s  CPU {c:6.2f} s per process   / fpfh: wall "
-            f"{w / fw:.2f} CPU {c / fc:.2f}   / open3d: wall {w / ow:.2f} CPU {c / oc:.2f}"
+        ratios = "".join(
+            f"   / {p}: wall {w / med[p][0]:.2f} CPU {c / med[p][1]:.2f}" for p in peers if p != v
         )
+        print(f"  {v:<8} wall {w:6.2f} s  CPU {c:6.2f} s per process{ratios}")
     for v, rs in runs.items():
         names = rs[0][2].keys()
         stages = {k: statistics.median(r[2].get(k, float("nan")) for r in rs) for k in names}
@@ -401,7 +471,17 @@ def main() -> None:
     parser.add_argument(
         "--cases", default="idle,busy,parallel", help="Load-matrix cases (also allbusy)."
     )
-    parser.add_argument("--inputs", default="fragment,depth,large", help="Load-matrix inputs.")
+    parser.add_argument(
+        "--inputs", default="fragment,depth,large", help="Load-matrix inputs (also demo)."
+    )
+    parser.add_argument(
+        "--variants", default=",".join(VARIANTS), help="Load-matrix commands (default,fpfh,open3d)."
+    )
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        help="Another source tree whose default command runs too (PYTHONPATH), e.g. ../main/src.",
+    )
     parser.add_argument("--copies", type=int, default=3, help="Copies at once (parallel case).")
     parser.add_argument(
         "--no-loop", action="store_true", help="Batch part: skip the loop of single registers."
@@ -411,14 +491,18 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             makers = {
                 "fragment": lambda: Input("fragment pair", *args.pair, []),
+                "demo": lambda: Input("demo pair", DEMO / "source.ply", DEMO / "target.ply", []),
                 "depth": depth_pair,
                 "large": lambda: large_pair(Path(tmp)),
             }
             pairs = [makers[name]() for name in args.inputs.split(",")]
-            load_matrix(pairs, args.cases.split(","), args.copies, args.repeats)
+            variants = tuple(args.variants.split(","))
+            load_matrix(
+                pairs, args.cases.split(","), args.copies, args.repeats, variants, args.baseline
+            )
         return
     if args.only == "batch":
-        print_batch(SAMPLE, args.repeats, loop=not args.no_loop)
+        print_batch(SAMPLE, args.repeats, loop=not args.no_loop, baseline=args.baseline)
         return
     if args.only == "whole":
         whole_process(*args.pair, args.repeats)

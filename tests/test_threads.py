@@ -237,3 +237,45 @@ def test_workers_run_torch_on_one_thread_and_leave_other_threads_alone():
 def test_a_pool_needs_a_worker():
     with pytest.raises(ValueError):
         threads.worker_pool(0)
+
+
+# ------------------------------------------------------------------ side by side
+
+
+def test_side_by_side_returns_the_results_in_order_whoever_ran_them():
+    pool = threads.worker_pool(2)
+    try:
+        run = threads.side_by_side(pool)
+        names = run([lambda: threading.current_thread().name for _ in range(4)])
+        assert names[0] == threading.current_thread().name  # the first: the caller
+        assert run([lambda k=k: k * k for k in range(5)]) == [0, 1, 4, 9, 16]
+        assert run([]) == []
+    finally:
+        pool.shutdown()
+
+
+def test_side_by_side_takes_back_work_a_busy_pool_has_not_started():
+    pool = threads.worker_pool(1)
+    release = threading.Event()
+    blocker = pool.submit(release.wait)  # the only worker is busy until released
+    try:
+        # from a thread that is not a worker as from one: nothing waits on the blocked queue
+        out = threads.side_by_side(pool)([lambda: "a", lambda: "b", lambda: "c"])
+        assert out == ["a", "b", "c"]
+        assert not blocker.done()
+    finally:
+        release.set()
+        pool.shutdown()
+
+
+def test_side_by_side_raises_what_a_call_raised():
+    pool = threads.worker_pool(2)
+
+    def fail():
+        raise ValueError("bad half")
+
+    try:
+        with pytest.raises(ValueError, match="bad half"):
+            threads.side_by_side(pool)([lambda: 1, fail])
+    finally:
+        pool.shutdown()

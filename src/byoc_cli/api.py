@@ -44,7 +44,7 @@ from byoc_cli.api_types import (
     load_weights,
 )
 from byoc_cli.errors import RegistrationError
-from byoc_cli.threads import apply_thread_policy, in_worker
+from byoc_cli.threads import apply_thread_policy, in_worker, side_by_side
 
 if "torch" not in sys.modules:  # only before torch: OpenMP reads its settings when loaded
     apply_thread_policy()
@@ -371,8 +371,16 @@ class Registrar:
         full = None
         if src.cloud is not None and tgt.cloud is not None:
             full = (self._refine_cloud(src), self._refine_cloud(tgt))
+        # on a worker (register, register-batch): pieces side by side with an idle worker
+        parallel = side_by_side(self.executor()) if in_worker() and self.threads > 1 else None
         result = estimate_transform(
-            cloud(src), cloud(tgt), config, src.voxel_size, full, refine_voxel=src.refine_voxel
+            cloud(src),
+            cloud(tgt),
+            config,
+            src.voxel_size,
+            full,
+            refine_voxel=src.refine_voxel,
+            parallel=parallel,
         )
         T = result.T_tgt_src.clone()
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s

@@ -31,8 +31,8 @@ import math
 import os
 import sys
 import threading
-from collections.abc import MutableMapping
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, MutableMapping, Sequence
+from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
 #: OpenMP's wait policy for the tool's processes
@@ -255,3 +255,24 @@ def _one_torch_thread(started: threading.Barrier) -> None:
     torch.set_num_threads(1)
     _WORKER.active = True
     started.wait()  # every worker is busy until all are set: each runs this once
+
+
+#: runs independent calls, possibly side by side, and returns their results in order
+Parallel = Callable[[Sequence[Callable[[], object]]], list]
+
+
+def side_by_side(pool: Executor) -> Parallel:
+    """A :data:`Parallel` on ``pool`` for a thread that may be one of its workers: the first
+    call runs in the calling thread while the others are offered to the pool; a call no
+    worker has started by then is taken back and run in the calling thread too, so the
+    caller never waits on work queued behind its own (a busy pool only costs the offer).
+    The results are what the calls return, whichever thread ran them."""
+
+    def run(calls: Sequence[Callable[[], object]]) -> list:
+        offered = [pool.submit(call) for call in calls[1:]]
+        results = [calls[0]()] if calls else []
+        for call, future in zip(calls[1:], offered, strict=True):
+            results.append(call() if future.cancel() else future.result())
+        return results
+
+    return run

@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 
 from byoc_cli.geometry.neighbors import (
     CELL_LIMIT,
+    DENSE_CELLS,
     CellIndex,
+    DenseCells,
     cell_keys,
     nearest_candidates,
     nearest_of,
@@ -80,6 +82,72 @@ def test_neighbor_positions_match_a_dictionary(seed):
                         expected.add(where[key])
         assert {p for p in row if p >= 0} == expected
         assert len([p for p in row if p >= 0]) == len(expected)  # no cell twice
+
+
+@pytest.mark.parametrize("reach", [1, 2])
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_neighbor_positions_reach_matches_a_dictionary(reach, seed):
+    g = torch.Generator().manual_seed(seed)
+    occupied = torch.unique(cell_keys(torch.randint(-3, 4, (80, 3), generator=g)))
+    queries = torch.randint(-6, 7, (30, 3), generator=g)
+    pos = neighbor_positions(occupied, queries, reach)
+    where = {int(k): i for i, k in enumerate(occupied.tolist())}
+    span = range(-reach, reach + 1)
+    for q, row in zip(queries.tolist(), pos.tolist(), strict=True):
+        # in the order of the offsets (dx, dy, dz), dz fastest
+        expected = [
+            where.get(int(cell_keys(torch.tensor([[q[0] + dx, q[1] + dy, q[2] + dz]]))[0]), -1)
+            for dx in span
+            for dy in span
+            for dz in span
+        ]
+        assert row == expected
+
+
+def test_neighbor_positions_refuse_cells_past_the_limit():
+    with pytest.raises(ValueError, match="cells"):
+        neighbor_positions(torch.tensor([0]), torch.tensor([[CELL_LIMIT - 1, 0, 0]]), reach=1)
+
+
+@pytest.mark.parametrize("reach", [1, 2])
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_dense_cells_give_what_the_sorted_keys_give(reach, seed):
+    g = torch.Generator().manual_seed(seed)
+    cells = torch.randint(-5, 6, (120, 3), generator=g)
+    keys, first = torch.unique(cell_keys(cells), return_inverse=True)
+    distinct = torch.zeros(len(keys), 3, dtype=torch.int64).index_copy_(0, first, cells)
+    dense = DenseCells.build(distinct, torch.arange(len(keys)), reach=2)
+    queries = torch.randint(-12, 13, (200, 3), generator=g)  # many far outside the box
+    assert torch.equal(dense.lookup(queries, reach), neighbor_positions(keys, queries, reach))
+
+
+def test_dense_cells_only_within_the_budget_and_the_padding():
+    far = torch.tensor([[0, 0, 0], [DENSE_CELLS, 0, 0]])
+    assert DenseCells.build(far, torch.arange(2), reach=1) is None
+    dense = DenseCells.build(torch.zeros(1, 3, dtype=torch.int64), torch.zeros(1), reach=1)
+    with pytest.raises(ValueError, match="reach"):
+        dense.lookup(torch.zeros(1, 3, dtype=torch.int64), reach=2)
+
+
+@pytest.mark.parametrize("averaged", [True, False])
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_a_dense_cell_index_finds_the_same_points(averaged, seed):
+    size = 0.05
+    target = _cloud(1500, seed)
+    if averaged:
+        target = voxel_average(target, size)
+    plain, dense = CellIndex(target, size), CellIndex(target, size, dense_reach=2)
+    assert plain.dense is None and dense.dense is not None
+    queries = _cloud(300, seed + 1, scale=0.45)
+    for reach in (1, 2):
+        assert torch.equal(plain.around(queries, reach), dense.around(queries, reach))
+        assert torch.equal(
+            nearest_candidates(plain, queries, 8, reach),
+            nearest_candidates(dense, queries, 8, reach),
+        )
 
 
 def test_neighbor_positions_of_nothing():

@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.sampling import cloud_radius, nearest_spacing
+from byoc_cli.geometry.neighbors import CellIndex, nearest_candidates
+from byoc_cli.geometry.sampling import _index_around, cloud_radius, nearest_spacing
 
 
 def _brute_spacing(points: np.ndarray) -> float:
@@ -28,6 +29,20 @@ def test_spacing_equals_brute_force_when_every_point_is_a_query():
     pts = _surface(1500, 0)
     got = nearest_spacing(torch.from_numpy(pts), samples=len(pts))
     assert got == pytest.approx(_brute_spacing(pts), rel=1e-9)
+
+
+@pytest.mark.parametrize("cell", [0.005, 0.02, 0.08])
+def test_the_index_around_the_queries_finds_what_the_whole_index_finds(cell):
+    pts = torch.from_numpy(_surface(3000, 4))
+    queries = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(0))[:50]]
+    whole, part = CellIndex(pts, cell), _index_around(pts, queries, cell)
+    assert len(part.points) < len(pts) or cell == 0.08
+    near_whole = nearest_candidates(whole, queries, k=16)
+    near_part = nearest_candidates(part, queries, k=16)
+    # the same points in the same order (indices differ: the part holds fewer)
+    assert torch.equal(near_whole >= 0, near_part >= 0)
+    found = near_whole >= 0
+    assert torch.equal(whole.points[near_whole[found]], part.points[near_part[found]])
 
 
 def test_spacing_of_a_grid_is_its_step():

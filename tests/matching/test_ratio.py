@@ -307,3 +307,19 @@ def test_deterministic(generator):
     second = ratio_test_correspondences(a.clone(), b.clone(), k=50)
     for x, y in zip(first, second, strict=True):
         assert torch.equal(x, y)
+
+
+def test_the_two_directions_side_by_side_give_the_same_correspondences():
+    from byoc_cli.threads import side_by_side, worker_pool
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.nn.functional.normalize(torch.randn(700, 16, generator=g), dim=1)
+    b = torch.nn.functional.normalize(torch.randn(500, 16, generator=g), dim=1)
+    alone = ratio_test_correspondences(a, b, k=50)
+    pool = worker_pool(2)
+    try:
+        split = ratio_test_correspondences(a, b, k=50, parallel=side_by_side(pool))
+    finally:
+        pool.shutdown()
+    for x, y in zip(alone, split, strict=True):
+        assert torch.equal(x, y)

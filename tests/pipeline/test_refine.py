@@ -13,7 +13,9 @@ from byoc_cli.geometry.transforms import (
     invert_transform,
     make_transform,
 )
+from byoc_cli.pipeline import refine as refine_module
 from byoc_cli.pipeline.refine import RefineCloud, refine_multiscale
+from byoc_cli.threads import side_by_side, worker_pool
 
 
 def _boxes(n: int, boxes, generator: torch.Generator) -> torch.Tensor:
@@ -117,3 +119,26 @@ def test_georeferenced_coordinates_refine_as_well_as_near_the_origin(generator):
     assert _pose_error(near.T_tgt_src, T_true)[1] < 0.005
     rot, trans = _pose_error(back, near.T_tgt_src)
     assert rot < 0.05 and trans < 0.001
+
+
+def test_searches_side_by_side_give_the_same_bytes(generator, monkeypatch):
+    T_true = _motion([0.05, -0.1, 0.2], [0.1, 0.05, -0.05])
+    src, tgt = _room_pair(30_000, T_true, generator)
+    start = _motion([0.0, 0.02, 0.0], [0.03, -0.02, 0.01]) @ T_true
+    alone = refine_multiscale(src, tgt, start, voxel_size=0.025)
+    halves = []
+
+    def counted(calls):
+        halves.append(len(calls))
+        return side_by_side(pool)(calls)
+
+    monkeypatch.setattr(refine_module, "SPLIT_SEARCH", 64)  # every level's search split
+    pool = worker_pool(2)
+    try:
+        split = refine_multiscale(src, tgt, start, voxel_size=0.025, parallel=counted)
+    finally:
+        pool.shutdown()
+    assert halves and set(halves) == {2}
+    assert torch.equal(split.T_tgt_src, alone.T_tgt_src)
+    assert (split.rank, split.fitness, split.rmse) == (alone.rank, alone.fitness, alone.rmse)
+    assert split.conditioning == alone.conditioning

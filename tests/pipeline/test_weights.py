@@ -51,6 +51,10 @@ def test_round_trip_is_exact(saved):
     assert loaded.metadata["training"]["variant"] == "random-init"
     assert len(loaded.file_sha256) == 64
     assert not loaded.encoder.training
+    # built on the meta device (no random init) and given the file's tensors: none left behind
+    tensors = [*loaded.encoder.parameters(), *loaded.encoder.buffers()]
+    assert tensors and not any(t.is_meta for t in tensors)
+    assert all(p.requires_grad for p in loaded.encoder.parameters())
 
 
 def test_init_is_seeded_and_leaves_global_rng_alone(saved):

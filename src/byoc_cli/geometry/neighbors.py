@@ -61,31 +61,33 @@ def neighbor_positions(
 ) -> torch.Tensor:
     """Where the cells within ``reach`` cells (per axis) of each of ``cells (Q, 3)`` are in
     ``sorted_keys (C,)`` (unique, ascending): ``(Q, (2 reach + 1)^3)`` int64 positions, -1 for
-    empty cells.
+    empty cells, in the order of the offsets ``(dx, dy, dz)`` with dz fastest.
 
     Cells next to each other along z have consecutive keys, so one search per (x, y) column
     (9, not 27, for reach 1) finds the whole run: the keys ``base - reach .. base + reach``
-    can only sit in the ``2 reach + 1`` places from where ``base - reach`` would go.
+    can only sit in the ``2 reach + 1`` places from where ``base - reach`` would go, and the
+    key found at each place says which of them it is.
+
+    Raises:
+        ValueError: a column of a query lies :data:`CELL_LIMIT` or more from the origin.
     """
     width = 2 * reach + 1
     Q, C = len(cells), len(sorted_keys)
     if C == 0 or Q == 0:
         return torch.full((Q, width**3), -1, dtype=torch.int64)
     span = torch.arange(-reach, reach + 1)
-    columns = torch.stack(torch.meshgrid(span, span, indexing="ij"), dim=-1).reshape(-1, 2)
-    columns = torch.cat([columns, torch.zeros(len(columns), 1, dtype=torch.int64)], dim=1)
-    base = cell_keys((cells[:, None, :] + columns).reshape(-1, 3)).reshape(Q, len(columns))
-    low = torch.searchsorted(sorted_keys, base - reach)  # (Q, columns)
-    places = [(low + i).clamp_max(C - 1) for i in range(width)]
-    found = [sorted_keys[at] for at in places]
-    out = []
-    for dz in range(-reach, reach + 1):
-        wanted = base + dz
-        pos = torch.full_like(low, -1)
-        for at, key in zip(places, found, strict=True):
-            pos = torch.where(key == wanted, at, pos)
-        out.append(pos)
-    return torch.stack(out, dim=2).reshape(Q, -1)
+    dx, dy = (d.reshape(-1) for d in torch.meshgrid(span, span, indexing="ij"))
+    margin = torch.tensor([reach, reach, 0])
+    cell_keys(torch.stack([cells.min(dim=0).values - margin, cells.max(dim=0).values + margin]))
+    # a key is x * 2^42 + y * 2^21 + z (each offset into [0, 2^21)): neighbours add offsets
+    base = cell_keys(cells)[:, None] + ((dx << 42) + (dy << 21))  # (Q, columns)
+    low = torch.searchsorted(sorted_keys, base - reach)
+    at = (low[:, :, None] + torch.arange(width)).clamp_max(C - 1)  # (Q, columns, width)
+    dz = sorted_keys[at] - base[:, :, None] + reach  # the z offset a place holds, if in range
+    dz = torch.where((dz >= 0) & (dz < width), dz, width)  # else: a slot that is dropped
+    out = torch.full((Q, len(dx), width + 1), -1, dtype=torch.int64)
+    out.scatter_(2, dz, at)  # keys are unique: a place fills at most one slot
+    return out[:, :, :width].reshape(Q, -1)
 
 
 def voxel_average(points: torch.Tensor, size: float) -> torch.Tensor:
@@ -102,20 +104,94 @@ def voxel_average(points: torch.Tensor, size: float) -> torch.Tensor:
     return sums / counts[:, None]
 
 
+#: most cells (padding included) a :class:`DenseCells` table may have: 16 MB of int32
+DENSE_CELLS = 1 << 22
+
+
+class DenseCells(NamedTuple):
+    """A dense table over the box of a set of occupied cells: one int32 value per cell of the
+    box (-1 for empty cells), padded by ``2 reach`` cells on each side, z fastest.
+
+    Built by :meth:`build`; :meth:`lookup` gives what :func:`neighbor_positions` gives (with
+    the values in place of the positions) with one gather instead of binary searches.
+    """
+
+    low: torch.Tensor  # (3,) int64, the cell of table index 0
+    dims: torch.Tensor  # (3,) int64, cells of the box per axis
+    table: torch.Tensor  # (prod(dims),) int32
+    reach: int  # the largest reach the padding allows
+    empty: int = -1  # the value of empty cells
+
+    @staticmethod
+    def build(
+        cells: torch.Tensor, values: torch.Tensor, reach: int, empty: int = -1
+    ) -> DenseCells | None:
+        """The table of ``values (C,)`` at distinct ``cells (C, 3)`` int64, ``empty`` in the
+        other cells, for searches of up to ``reach``; None when the box has more than
+        :data:`DENSE_CELLS` cells or a value does not fit in int32."""
+        pad = 2 * reach
+        low = cells.min(dim=0).values - pad
+        dims = cells.max(dim=0).values + pad - low + 1
+        size = math.prod(int(d) for d in dims)
+        if size > DENSE_CELLS or max(int(values.max()), empty) >= 2**31:
+            return None
+        table = torch.full((size,), empty, dtype=torch.int32)
+        table[_linear(cells - low, dims)] = values.to(torch.int32)
+        return DenseCells(low, dims, table, reach, empty)
+
+    def lookup(self, cells: torch.Tensor, reach: int) -> torch.Tensor:
+        """``(Q, (2 reach + 1)^3)`` int64 values of the cells within ``reach`` of each of
+        ``cells (Q, 3)``, in the order of :func:`neighbor_positions` (:attr:`empty` for an
+        empty cell)."""
+        if reach > self.reach:
+            raise ValueError(f"the table is padded for reach {self.reach}, not {reach}")
+        span = torch.arange(-reach, reach + 1)
+        offsets = torch.cartesian_prod(span, span, span)  # (dx, dy, dz), dz fastest
+        rel = cells - self.low
+        # every occupied cell lies 2 reach cells inside the box: a query cell closer than
+        # reach to its edge (or outside) has none around it
+        inside = ((rel >= reach) & (rel < self.dims - reach)).all(dim=1)
+        rel = torch.minimum(rel.clamp_min(reach), self.dims - 1 - reach)
+        at = _linear(rel, self.dims)[:, None] + _linear(offsets, self.dims)
+        out = self.table.index_select(0, at.reshape(-1)).view(at.shape).to(torch.int64)
+        return out.masked_fill_(~inside[:, None], self.empty)
+
+
+def _linear(cells: torch.Tensor, dims: torch.Tensor) -> torch.Tensor:
+    """Row-major (z fastest) index of ``cells (Q, 3)`` in a box of ``dims (3,)``."""
+    return (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+
+
 class CellIndex:
     """The points of a cloud by cell: sorted keys and, per key, the points in that cell.
 
     Args:
         points: ``(N, 3)`` points.
         size: cell edge (metres).
+        dense_reach: also build a :class:`DenseCells` table for searches of up to this
+            reach, when its box has at most :data:`DENSE_CELLS` cells (a search is then one
+            lookup per neighbour cell instead of a binary search per column; the results
+            are the same).
+        origin: ``(3,)`` the grid's origin, a cell corner at or below every point (default:
+            :func:`grid_origin` of ``points``): an index of part of a cloud on the cloud's grid.
     """
 
-    def __init__(self, points: torch.Tensor, size: float) -> None:
+    def __init__(
+        self,
+        points: torch.Tensor,
+        size: float,
+        dense_reach: int | None = None,
+        origin: torch.Tensor | None = None,
+    ) -> None:
         self.points = points
         self.size = float(size)
-        self.origin = grid_origin(points, size)
-        # (3, N) float32 offsets from the origin, for distances
-        self.columns = (points - self.origin).T.to(torch.float32).contiguous()
+        self.origin = grid_origin(points, size) if origin is None else origin
+        # (3, N + 1) float32 offsets from the origin, for distances; column N is a point at
+        # infinity that stands for "no point" (its distance to anything is inf)
+        self.none = len(points)
+        self.columns = torch.cat(
+            [(points - self.origin).T.to(torch.float32), torch.full((3, 1), float("inf"))], 1
+        ).contiguous()
         keys = cell_keys(_cells(points, size, self.origin))
         self.order = torch.argsort(keys, stable=True)  # (N,) points sorted by cell
         sorted_keys = keys[self.order]
@@ -124,6 +200,14 @@ class CellIndex:
         self.first = self.order[self.start]  # (C,) the first point of each cell
         self.count = counts  # (C,)
         self.max_count = int(counts.max()) if len(counts) else 0
+        self.dense: DenseCells | None = None
+        if dense_reach is not None and len(self.keys):
+            # one point per cell: the table holds the point itself (none: the point at
+            # infinity), else the cell's position (none: -1)
+            one = self.max_count <= 1
+            values = self.first if one else torch.arange(len(self.keys))
+            cells = _cells(points[self.first], size, self.origin)
+            self.dense = DenseCells.build(cells, values, dense_reach, self.none if one else -1)
 
     def around(self, queries: torch.Tensor, reach: int = 1) -> torch.Tensor:
         """Indices of the points in the cells within ``reach`` cells of each query's,
@@ -134,9 +218,20 @@ class CellIndex:
             queries: ``(Q, 3)`` points.
             reach: cells per axis either side.
         """
-        pos = neighbor_positions(self.keys, _cells(queries, self.size, self.origin), reach)
+        found = self._around(queries, reach)
+        return found.masked_fill_(found == self.none, -1)
+
+    def _around(self, queries: torch.Tensor, reach: int) -> torch.Tensor:
+        """:meth:`around` padded with :attr:`none` (the point at infinity) instead of -1."""
+        cells = _cells(queries, self.size, self.origin)
+        if self.dense is not None and reach <= self.dense.reach:
+            pos = self.dense.lookup(cells, reach)
+            if self.max_count <= 1:  # the table holds the points themselves
+                return pos
+        else:
+            pos = neighbor_positions(self.keys, cells, reach)
         if self.max_count <= 1:  # one point per cell (voxel averages at the cell size)
-            return torch.where(pos >= 0, self.first[pos.clamp_min(0)], -1)
+            return torch.where(pos >= 0, self.first[pos.clamp_min(0)], self.none)
         found = pos >= 0
         safe = pos.clamp_min(0)
         start, count = self.start[safe], torch.where(found, self.count[safe], 0)
@@ -144,19 +239,26 @@ class CellIndex:
         at = start[..., None] + slots  # (Q, 27, m)
         valid = slots < count[..., None]
         index = self.order[at.clamp_max(len(self.order) - 1).clamp_min(0)]
-        return torch.where(valid, index, torch.full_like(index, -1)).reshape(len(queries), -1)
+        return torch.where(valid, index, self.none).reshape(len(queries), -1)
 
 
 def _distance2(cells: CellIndex, index: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
     """``(Q, k)`` float32 squared distances from ``queries (Q, 3)`` to the points ``index
-    (Q, k)`` of ``cells`` (-1 = none: inf), in place one coordinate at a time (float64
-    temporaries of this size cost ten times as much on a CPU)."""
-    safe = index.clamp_min(0)
+    (Q, k)`` of ``cells`` (``cells.none``, the point at infinity: inf), in place one
+    coordinate at a time (float64 temporaries of this size cost ten times as much on a
+    CPU)."""
+    flat = index.reshape(-1)
     q = (queries - cells.origin).T.to(torch.float32)
-    d2 = cells.columns[0][safe].sub_(q[0][:, None]).square_()
+    d2 = cells.columns[0].index_select(0, flat).view(index.shape).sub_(q[0][:, None]).square_()
     for axis in (1, 2):
-        d2 += cells.columns[axis][safe].sub_(q[axis][:, None]).square_()
-    return d2.masked_fill_(index < 0, float("inf"))
+        d2 += (
+            cells.columns[axis]
+            .index_select(0, flat)
+            .view(index.shape)
+            .sub_(q[axis][:, None])
+            .square_()
+        )
+    return d2
 
 
 def nearest_candidates(
@@ -164,12 +266,12 @@ def nearest_candidates(
 ) -> torch.Tensor:
     """The ``k`` points of ``index`` nearest each query among the cells within ``reach``,
     nearest first, ``(Q, k)`` int64 (-1 where there are fewer)."""
-    cand = index.around(queries, reach)
+    cand = index._around(queries, reach)
     d2 = _distance2(index, cand, queries)
     k = min(k, cand.shape[1])
     near, pick = torch.topk(d2, k, dim=1, largest=False)
     chosen = cand.gather(1, pick)
-    return torch.where(torch.isfinite(near), chosen, torch.full_like(chosen, -1))
+    return chosen.masked_fill_(~torch.isfinite(near), -1)
 
 
 class Nearest(NamedTuple):
@@ -182,7 +284,8 @@ class Nearest(NamedTuple):
 def nearest_of(index: CellIndex, queries: torch.Tensor, candidates: torch.Tensor) -> Nearest:
     """For each of ``queries (Q, 3)``, the nearest of its ``candidates (Q, k)`` (indices into
     ``index.points``, -1 = none); ``distance2`` float32."""
-    best, pick = _distance2(index, candidates, queries).min(dim=1)
+    safe = torch.where(candidates < 0, index.none, candidates)
+    best, pick = _distance2(index, safe, queries).min(dim=1)
     return Nearest(candidates.gather(1, pick[:, None])[:, 0], best)
 
 

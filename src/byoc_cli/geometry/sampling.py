@@ -14,7 +14,13 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.neighbors import CellIndex, nearest_candidates
+from byoc_cli.geometry.neighbors import (
+    CellIndex,
+    _cells,
+    cell_keys,
+    grid_origin,
+    nearest_candidates,
+)
 
 #: query points whose nearest neighbour is measured (a seeded random subset)
 SPACING_SAMPLES = 2048
@@ -41,7 +47,10 @@ def cloud_radius(points: torch.Tensor) -> float:
 
 
 def nearest_spacing(
-    points: torch.Tensor, generator: torch.Generator | None = None, samples: int = SPACING_SAMPLES
+    points: torch.Tensor,
+    generator: torch.Generator | None = None,
+    samples: int = SPACING_SAMPLES,
+    radius: float | None = None,
 ) -> float:
     """Median nearest-neighbour distance of ``points (N, 3)``: the sampling step of a scan.
 
@@ -54,11 +63,12 @@ def nearest_spacing(
         points: ``(N, 3)``.
         generator: draws the query subset (default: seed 0).
         samples: query points at most.
+        radius: :func:`cloud_radius` of ``points`` if known (it sets the first cell).
     """
     _check(points)
     pts = points.to(torch.float64)
     n = len(pts)
-    radius = cloud_radius(pts)
+    radius = cloud_radius(pts) if radius is None else radius
     if n < 2 or radius <= 0:
         return 0.0
     generator = generator or torch.Generator().manual_seed(0)
@@ -67,10 +77,11 @@ def nearest_spacing(
     todo = torch.arange(len(queries))
     cell = 2.0 * radius / math.sqrt(n)
     for _ in range(SPACING_ROUNDS):
-        index = CellIndex(pts, cell)
-        near = nearest_candidates(index, pts[queries[todo]], k=16)  # (Q, 16), self included
+        asked = pts[queries[todo]]
+        index = _index_around(pts, asked, cell)
+        near = nearest_candidates(index, asked, k=16)  # (Q, 16), self included
         valid = near >= 0
-        dist = torch.linalg.vector_norm(pts[near.clamp_min(0)] - pts[queries[todo]][:, None], dim=2)
+        dist = torch.linalg.vector_norm(index.points[near.clamp_min(0)] - asked[:, None], dim=2)
         dist = dist.masked_fill(~valid | (dist <= 0), float("inf")).min(dim=1).values
         hit = dist <= cell  # within reach of one cell: the true nearest neighbour
         found[todo[hit]] = dist[hit]
@@ -80,3 +91,18 @@ def nearest_spacing(
         cell *= 2
     finite = found[torch.isfinite(found)]
     return float(np.median(finite.numpy())) if len(finite) else 0.0
+
+
+def _index_around(points: torch.Tensor, queries: torch.Tensor, cell: float) -> CellIndex:
+    """A :class:`CellIndex` at ``cell`` of the ``points (N, 3)`` in the 27 cells around each of
+    ``queries (Q, 3)``, on the grid of the whole cloud: around the queries it holds what the
+    index of every point holds, in the same order, and costs a pass over the points instead
+    of a sort of them."""
+    origin = grid_origin(points, cell)
+    span = torch.arange(-1, 2)
+    offsets = torch.cartesian_prod(span, span, span)  # (27, 3)
+    asked = _cells(queries, cell, origin)
+    wanted = torch.unique(cell_keys((asked[:, None, :] + offsets).reshape(-1, 3)))
+    keys = cell_keys(_cells(points, cell, origin))
+    at = torch.searchsorted(wanted, keys).clamp_max(len(wanted) - 1)
+    return CellIndex(points[wanted[at] == keys], cell, origin=origin)

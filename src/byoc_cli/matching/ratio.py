@@ -14,6 +14,7 @@ both feature sets, without autograd ever holding an ``N x M`` matrix.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -148,6 +149,10 @@ def feature_knn(
     return KNN(dist, idx)
 
 
+def _one_by_one(calls: Sequence[Callable[[], KNN]]) -> list[KNN]:
+    return [call() for call in calls]
+
+
 def _empty(feats_src: torch.Tensor, feats_tgt: torch.Tensor) -> Correspondences:
     idx = torch.zeros(0, dtype=torch.int64, device=feats_src.device)
     # slices of the inputs: typed, on the right device, and attached to the graph
@@ -197,6 +202,7 @@ def ratio_test_correspondences(
     k: int = 200,
     chunk_size: int | None = None,
     mutual: bool = False,
+    parallel: Callable[[Sequence[Callable[[], KNN]]], list[KNN]] | None = None,
 ) -> Correspondences:
     """Bidirectional Lowe-ratio correspondences (the paper's section 3.1, Correspondence
     estimation).
@@ -214,6 +220,9 @@ def ratio_test_correspondences(
         k: rows kept per direction (>= 0); 200 in the paper.
         chunk_size: query rows per chunk of :func:`feature_knn` (``None``: automatic).
         mutual: keep only mutual nearest neighbours (before the top-``k`` selection).
+        parallel: runs the two directions' neighbour searches (a list of calls, results in
+            order), e.g. side by side on two threads (:func:`byoc_cli.threads.side_by_side`);
+            None: one after the other. The result is the same.
 
     Returns:
         :class:`Correspondences`, rows of the source -> target direction first (by
@@ -239,8 +248,12 @@ def ratio_test_correspondences(
     if k == 0:
         return _empty(feats_src, feats_tgt)
 
-    knn_st = feature_knn(feats_src, feats_tgt, k=2, chunk_size=chunk_size)  # (N, 2) into tgt
-    knn_ts = feature_knn(feats_tgt, feats_src, k=2, chunk_size=chunk_size)  # (M, 2) into src
+    knn_st, knn_ts = (parallel or _one_by_one)(
+        [
+            lambda: feature_knn(feats_src, feats_tgt, k=2, chunk_size=chunk_size),  # (N, 2)
+            lambda: feature_knn(feats_tgt, feats_src, k=2, chunk_size=chunk_size),  # (M, 2)
+        ]
+    )
     w_st = _ratio_weight(knn_st)
     w_ts = _ratio_weight(knn_ts)
     src_st = torch.arange(n, device=feats_src.device)

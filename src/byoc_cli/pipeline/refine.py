@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -138,7 +138,7 @@ class RefineCloud:
                 size, _, radius = self.levels[level]
                 q = self._average(level)
                 n = surface_normals(q, NORMAL_CELL * radius)
-                self._targets[level] = (q, n, CellIndex(q, size))
+                self._targets[level] = (q, n, CellIndex(q, size, SEARCH_REACH[level]))
             return self._targets[level]
 
     def prepare(
@@ -160,6 +160,7 @@ def refine_multiscale(
     voxel_size: float,
     degeneracy: float = DEGENERACY,
     sliding: float = SLIDING,
+    parallel: Callable[[Sequence[Callable[[], torch.Tensor]]], list] | None = None,
 ) -> Refinement:
     """Refine ``T_init`` by coarse-to-fine point-to-plane ICP.
 
@@ -171,6 +172,9 @@ def refine_multiscale(
         voxel_size: the feature voxel ``v``; the levels scale with it.
         degeneracy, sliding: see :func:`point_to_plane_step`; both 0 = plain
             point-to-plane ICP.
+        parallel: runs independent calls (results in order), e.g. side by side on two
+            threads (:func:`byoc_cli.threads.side_by_side`): the nearest-point searches of
+            the two halves of the source points. None: in turn. The result is the same.
 
     Returns:
         :class:`Refinement`; ``T_init`` itself where a level has fewer than
@@ -191,7 +195,7 @@ def refine_multiscale(
         for _ in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
             if anchor is None or float((moved - anchor).abs().max()) > RESEARCH * size:
-                candidates = nearest_candidates(index, moved, CANDIDATES, SEARCH_REACH[level])
+                candidates = _search(index, moved, SEARCH_REACH[level], parallel)
                 anchor = moved
             near = nearest_of(index, moved, candidates)
             ok = near.distance2 <= dist**2
@@ -212,6 +216,25 @@ def refine_multiscale(
             if angle < TOLERANCE and float(step.T[:3, 3].norm()) < TOLERANCE * voxel_size:
                 break
     return Refinement(T, rank, fitness, rmse, conditioning)
+
+
+#: fewest source points whose search is split in two for ``parallel``
+SPLIT_SEARCH = 4096
+
+
+def _search(index: CellIndex, queries: torch.Tensor, reach: int, parallel) -> torch.Tensor:
+    """:func:`nearest_candidates` of ``queries (Q, 3)``, by halves through ``parallel`` (each
+    row's search is its own: the halves give the rows of the whole)."""
+    if parallel is None or len(queries) < SPLIT_SEARCH:
+        return nearest_candidates(index, queries, CANDIDATES, reach)
+    half = len(queries) // 2
+    parts = parallel(
+        [
+            lambda: nearest_candidates(index, queries[:half], CANDIDATES, reach),
+            lambda: nearest_candidates(index, queries[half:], CANDIDATES, reach),
+        ]
+    )
+    return torch.cat(parts)
 
 
 def _prepared(points, voxel_size: float) -> RefineCloud:

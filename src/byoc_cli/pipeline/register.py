@@ -22,6 +22,7 @@ from byoc_cli.matching import ratio_test_correspondences
 from byoc_cli.pipeline.confidence import MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.refine import refine_multiscale
+from byoc_cli.threads import Parallel
 
 ESTIMATORS = ("procrustes", "ransac")
 
@@ -172,12 +173,15 @@ def estimate_transform(
     voxel_size: float,
     clouds: tuple[torch.Tensor, torch.Tensor] | None = None,
     refine_voxel: float | None = None,
+    parallel: Parallel | None = None,
 ) -> RegistrationResult:
     """Match two featured clouds and fit ``T_tgt_src`` (no I/O, no feature extraction).
 
     ``clouds``: the full-resolution ``(N, 3)``, ``(M, 3)`` points that ``"multiscale"``
     refinement runs on (None: the kept points); ``refine_voxel``: the voxel its levels scale
-    with (None: ``voxel_size``).
+    with (None: ``voxel_size``); ``parallel``: runs independent pieces of the matching and
+    the refinement side by side (:func:`byoc_cli.threads.side_by_side`; None: in turn; the
+    result is the same bytes).
     """
     timer = _Timer()
     start = time.perf_counter()
@@ -189,7 +193,11 @@ def estimate_transform(
         tgt, sample_subset(len(tgt.points), config.max_points, generator)
     )
     corr = ratio_test_correspondences(
-        feats_src, feats_tgt, k=config.num_correspondences, chunk_size=config.chunk_size
+        feats_src,
+        feats_tgt,
+        k=config.num_correspondences,
+        chunk_size=config.chunk_size,
+        parallel=parallel,
     )
     if corr.src_idx.numel() < 3:
         raise RegistrationError(f"only {corr.src_idx.numel()} correspondences (need 3)")
@@ -215,7 +223,9 @@ def estimate_transform(
         start = timer("refine", start)
     elif config.refine == "multiscale":
         full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
-        refinement = refine_multiscale(full_src, full_tgt, T, refine_voxel or voxel_size)
+        refinement = refine_multiscale(
+            full_src, full_tgt, T, refine_voxel or voxel_size, parallel=parallel
+        )
         T = refinement.T_tgt_src
         start = timer("refine", start)
 

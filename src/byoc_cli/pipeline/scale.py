@@ -131,7 +131,8 @@ def measure(points: torch.Tensor, label: str = "cloud") -> CloudScale:
             f"{label}: only {distinct} distinct point(s); at least {MIN_POINTS} are needed to "
             "read the scan's scale (or give --voxel-size)"
         )
-    return CloudScale(len(points), nearest_spacing(points), cloud_radius(points), label)
+    radius = cloud_radius(points)
+    return CloudScale(len(points), nearest_spacing(points, radius=radius), radius, label)
 
 
 def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoice:

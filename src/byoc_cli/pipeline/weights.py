@@ -324,7 +324,8 @@ def load_weights(path: str | Path) -> LoadedWeights:
     if tensors_sha256(tensors) != meta["tensors_sha256"]:
         raise WeightsError(path, "tensor checksum mismatch (file corrupt or edited)")
     _check_finite(path, tensors)
-    encoder = GeometricEncoder(config)
+    with torch.device("meta"):  # no memory and no random init: every tensor is the file's
+        encoder = GeometricEncoder(config)
     expected = encoder.state_dict()
     missing = sorted(set(expected) - set(tensors))
     extra = sorted(set(tensors) - set(expected))
@@ -343,7 +344,10 @@ def load_weights(path: str | Path) -> LoadedWeights:
                 f"expected {ref.dtype} {tuple(ref.shape)}",
             )
     tensors = {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}
-    encoder.load_state_dict(tensors, strict=True)
+    encoder.load_state_dict(tensors, strict=True, assign=True)
+    left = [n for n, t in (*encoder.named_parameters(), *encoder.named_buffers()) if t.is_meta]
+    if left:  # a tensor the state dict does not hold (none today): never run on meta
+        raise WeightsError(path, f"architecture {config.name!r} has no stored {left[0]!r}")
     encoder.eval()
     return LoadedWeights(encoder, meta, hashlib.sha256(blob).hexdigest(), str(path))
 
