@@ -190,13 +190,6 @@ def test_no_import_cycle_at_module_level():
 
 # ------------------------------------------------------------------ command modules
 
-#: command modules that still import another (issue 22, the recipe work): remove an entry when
-#: it is fixed (the test fails on a stale entry too)
-COMMAND_IMPORTS_PENDING = {
-    ("byoc_cli.cli.batch", "byoc_cli.cli.register"),
-    ("byoc_cli.cli.features", "byoc_cli.cli.register"),
-}
-
 
 def _command_modules() -> set[str]:
     tree = ast.parse((SRC / "cli" / "main.py").read_text())
@@ -218,28 +211,10 @@ def test_no_command_module_imports_another():
         for target in _targets(MODULES[name])
         if target in commands and target != name
     }
-    assert not found - COMMAND_IMPORTS_PENDING, (
+    assert not found, (
         f"a command module imports another (share through a cli module that is not a "
-        f"command, e.g. cli/pairwise.py): {sorted(found - COMMAND_IMPORTS_PENDING)}"
+        f"command, e.g. cli/pairwise.py): {sorted(found)}"
     )
-    assert not COMMAND_IMPORTS_PENDING - found, (
-        f"fixed: remove from COMMAND_IMPORTS_PENDING {sorted(COMMAND_IMPORTS_PENDING - found)}"
-    )
-
-
-#: functions that still take more than 8 parameters (issue 22): remove an entry when fixed
-MANY_PARAMETERS_PENDING = {
-    "byoc_cli.api.register",
-    "byoc_cli.cli.evaluate.eval_fmr",
-    "byoc_cli.cli.features.features",
-    "byoc_cli.cli.fragments.make_fragments",
-    "byoc_cli.cli.register.register",
-    "byoc_cli.fitting.ransac.ransac",
-    "byoc_cli.io.rgbd.discovery.discover_sequences",
-    "byoc_cli.pipeline.fragments.make_fragment_benchmark",
-    "byoc_cli.pipeline.scans._register_pair",
-    "byoc_cli.training.validate.register_pair_geometric",
-}
 
 
 def _parameters(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
@@ -258,10 +233,6 @@ def test_no_function_takes_more_than_8_parameters():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and _parameters(node) > 8:
                 found.add(f"{name}.{node.name}")
-    assert not found - MANY_PARAMETERS_PENDING, (
-        f"functions with more than 8 parameters (group them in a dataclass): "
-        f"{sorted(found - MANY_PARAMETERS_PENDING)}"
-    )
-    assert not MANY_PARAMETERS_PENDING - found, (
-        f"fixed: remove from MANY_PARAMETERS_PENDING {sorted(MANY_PARAMETERS_PENDING - found)}"
+    assert not found, (
+        f"functions with more than 8 parameters (group them in a dataclass): {sorted(found)}"
     )

@@ -1,8 +1,8 @@
 """The Python API: the pipeline of ``byoc register`` with numpy in and out.
 
 ``from byoc_cli import register, extract_features, load_weights, load_cloud, Registrar``.
-The functions take ``(N, 3)`` arrays (metres) or file paths, use the same per-feature defaults
-as the CLI (:data:`byoc_cli.pipeline.register.FEATURE_DEFAULTS`) and give the same results
+The functions take ``(N, 3)`` arrays (metres) or file paths, use the same recipe as the CLI
+(:data:`byoc_cli.pipeline.recipe.PRESETS`, or a ``recipe=``) and give the same results
 for the same seed: the ``byoc register``, ``register-batch`` and ``features`` commands are
 built on them. Results are NamedTuples of numpy arrays and numbers. Errors are the typed
 errors of :mod:`byoc_cli.errors`.
@@ -26,13 +26,13 @@ import threading
 import time
 import warnings
 from collections import OrderedDict
-from collections.abc import Mapping
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 if TYPE_CHECKING:
+    from byoc_cli.pipeline.recipe import RegistrationRecipe
     from byoc_cli.pipeline.weights import LoadedWeights
 
 from byoc_cli.api_types import (
@@ -61,26 +61,77 @@ __all__ = [
 ]
 
 
+class _FromRecipe:
+    """The default of an argument that the recipe gives."""
+
+    def __repr__(self) -> str:
+        return "<the recipe's>"
+
+
+_RECIPE: Any = _FromRecipe()
+
+
+def _registrar_recipe(
+    recipe: RegistrationRecipe | None,
+    features: str | None,
+    weights: Any,
+    voxel_size: Any,
+    fallback: str | None,
+    fallback_below: float | None,
+) -> RegistrationRecipe:
+    """The recipe of a :class:`Registrar`: ``recipe`` (or the preset of ``features``) changed
+    by the arguments that were given.
+
+    Raises:
+        ValueError: an unknown feature type, or a fallback that does not go with it.
+    """
+    from byoc_cli.pipeline.recipe import FEATURE_KINDS, preset
+
+    if features is not None and features not in FEATURE_KINDS:
+        raise ValueError(f"features must be one of {sorted(FEATURE_KINDS)}, got {features!r}")
+    if recipe is None:
+        recipe = preset(features)
+    elif features is not None and features != recipe.features.kind:
+        recipe = recipe.changed(features__kind=features)
+    if fallback == "auto":
+        fallback = recipe.gate.fallback if recipe.features.kind == "byoc" else "none"
+    if fallback not in (None, "none", "fpfh") or (
+        fallback == "fpfh" and recipe.features.kind != "byoc"
+    ):
+        raise ValueError(f"fallback must be None or 'fpfh' (with byoc features), got {fallback!r}")
+    path = weights if isinstance(weights, (str, os.PathLike)) else None
+    return recipe.changed(
+        features__weights=None if path is None else os.fspath(path),
+        features__voxel=None if voxel_size is _RECIPE else voxel_size or "own",
+        gate__fallback="none" if fallback is None else fallback,
+        gate__min_confidence=fallback_below,
+    )
+
+
 class Registrar:
     """A feature extractor loaded once, for many clouds and pairs.
 
     Args:
-        features: ``"byoc"`` (the learned encoder) or ``"fpfh"`` (Open3D FPFH).
+        features: ``"byoc"`` (the learned encoder) or ``"fpfh"`` (Open3D FPFH); None: the
+            recipe's (without a recipe: the :data:`~byoc_cli.pipeline.recipe.DEFAULT_PRESET`).
         weights: for byoc: a weights file, a :func:`load_weights` result, or None for the
-            shipped weights.
-        voxel_size: ``"auto"`` (default): read from each pair's clouds, in their own units
+            recipe's (the shipped weights unless the recipe names a file).
+        voxel_size: ``"auto"``: read from each pair's clouds, in their own units
             (:mod:`byoc_cli.pipeline.scale`); a number: that voxel, in the units of the
-            points; None: the features' own voxel (the weights' voxel size for byoc, 5 cm for
-            fpfh), with the unit check of :func:`load_cloud`.
+            points; None: the features' own voxel (the weights' voxel size for byoc, the
+            preset's for fpfh), with the unit check of :func:`load_cloud`. Not given: the
+            recipe's (``"auto"`` in the presets).
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
         threads: worker threads, each running torch single-threaded (default: torch's
             thread count, which the tool's thread policy sets to the usable cores).
         fallback: ``"fpfh"``: when a learned registration's confidence is below
             ``fallback_below``, register the pair again with FPFH features (at the same
             scale, refined the same way) and keep the more confident of the two; None: never;
-            ``"auto"`` (default): ``"fpfh"`` with byoc features, None with fpfh.
-        fallback_below: the confidence under which the fallback runs (the gate of
-            ``--min-confidence``).
+            ``"auto"``: the recipe's gate (``"fpfh"`` with byoc features, None with fpfh).
+        fallback_below: the confidence under which the fallback runs (None: the recipe's
+            ``gate.min_confidence``, the default ``--min-confidence``).
+        recipe: a :class:`~byoc_cli.pipeline.recipe.RegistrationRecipe` (None: the preset
+            of ``features``); the arguments above that are given change it.
 
     Raises:
         WeightsError: the weights cannot be loaded.
@@ -89,45 +140,38 @@ class Registrar:
 
     def __init__(
         self,
-        features: str = "byoc",
+        features: str | None = None,
         weights: str | os.PathLike[str] | LoadedWeights | None = None,
-        voxel_size: float | str | None = "auto",
+        voxel_size: float | str | None = _RECIPE,
         device: str = "auto",
         threads: int | None = None,
         fallback: str | None = "auto",
         fallback_below: float | None = None,
+        *,
+        recipe: RegistrationRecipe | None = None,
     ) -> None:
         import torch
 
-        from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
-        from byoc_cli.pipeline.register import FEATURE_DEFAULTS
-
-        if features not in FEATURE_DEFAULTS:
-            raise ValueError(
-                f"features must be one of {sorted(FEATURE_DEFAULTS)}, got {features!r}"
-            )
-        if fallback == "auto":
-            fallback = "fpfh" if features == "byoc" else None
-        if fallback not in (None, "fpfh") or (fallback and features != "byoc"):
-            raise ValueError(
-                f"fallback must be None or 'fpfh' (with byoc features), got {fallback!r}"
-            )
-        self.fallback = fallback
-        self.fallback_below = (
-            DEFAULT_MIN_CONFIDENCE if fallback_below is None else float(fallback_below)
+        self.recipe = _registrar_recipe(
+            recipe, features, weights, voxel_size, fallback, fallback_below
         )
+        self.features = self.recipe.features.kind
+        gate = self.recipe.gate
+        self.fallback = None if gate.fallback == "none" else gate.fallback
+        self.fallback_below = float(gate.min_confidence)
         self._fallback_registrar: Registrar | None = None
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be at least 1, got {threads}")
         self.threads = threads or torch.get_num_threads()
         self._executor = None
         self._lock = threading.Lock()
-        self.features = features
-        self.defaults: Mapping[str, Any] = FEATURE_DEFAULTS[features]
         self.device = _resolve_device(device)
         self.weights_info: dict[str, Any] | None = None
-        self.auto_voxel = voxel_size == "auto"
-        self.extractor = self._make_extractor(weights, None if self.auto_voxel else voxel_size)
+        voxel = self.recipe.features.voxel
+        self.auto_voxel = voxel == "auto"
+        if weights is None or isinstance(weights, (str, os.PathLike)):
+            weights = self.recipe.features.weights
+        self.extractor = self._make_extractor(weights, None if voxel in ("auto", "own") else voxel)
         #: the voxel of every cloud when not auto; the reference of the auto choice when auto
         self.voxel_size = float(self.extractor.voxel_size)
         # clouds prepared for multiscale refinement, most recent last: a cloud refined in
@@ -182,7 +226,7 @@ class Registrar:
         from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
 
         if self.features == "fpfh":
-            return FpfhExtractor(voxel_size or self.defaults["voxel_size"])
+            return FpfhExtractor(voxel_size or self.recipe.features.reference_voxel)
         if weights is None or isinstance(weights, (str, os.PathLike)):
             loaded = load_weights(weights)
         else:
@@ -320,15 +364,17 @@ class Registrar:
         refine: str | None = None,
         max_points: int | None = None,
         num_correspondences: int | None = None,
-        seed: int = 0,
+        seed: int | None = None,
     ) -> Registration:
         """Register two featured clouds: ratio-test matches, the robust fit, verification.
 
+        The registrar's recipe, changed by the arguments given (None: the recipe's).
+
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale).
-            estimator: ``"ransac"`` or ``"procrustes"``; None: the feature type's default.
-            refine: ``"none"``, ``"icp"`` or ``"multiscale"``; None: the feature type's
-                default (``"multiscale"`` runs on ``Features.cloud`` where both have one).
+            estimator: ``"ransac"`` or ``"procrustes"``.
+            refine: ``"none"`` or ``"multiscale"`` (runs on ``Features.cloud`` where both have
+                one); ``"icp"`` is read as ``"multiscale"`` (deprecated, with a warning).
             max_points: seeded random subset per cloud that enters matching (0 = all).
             num_correspondences: top-k ratio-test matches kept per direction.
             seed: seeds every random choice.
@@ -340,25 +386,16 @@ class Registrar:
         import torch
 
         from byoc_cli.pipeline.features import CloudFeatures
-        from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
+        from byoc_cli.pipeline.register import estimate_transform, register_config
 
         src, tgt = self._same_voxel(src, tgt)
         if (src.features, src.voxel_size, src.scale) != (tgt.features, tgt.voxel_size, tgt.scale):
             raise ValueError("src and tgt must have the same features, voxel size and scale")
-        estimator = estimator or self.defaults["estimator"]
-        refine = refine or (self.defaults["refine"] or "none")
-        if max_points is None:
-            max_points = self.defaults["max_points"]
-        if num_correspondences is None:
-            num_correspondences = self.defaults["num_correspondences"]
-        config = RegisterConfig(
-            num_correspondences=num_correspondences,
-            max_points=max_points,
-            estimator=estimator,
-            refine=None if refine == "none" else refine,
-            seed=seed,
-            confidence_model=self.features,
-        )
+        recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
+        config = register_config(recipe)
+        estimator, refine = recipe.fitting.estimator, recipe.refinement.method
+        max_points, num_correspondences = config.max_points, config.num_correspondences
+        seed = recipe.seed
 
         def cloud(f: Features) -> CloudFeatures:
             return CloudFeatures(
@@ -404,10 +441,41 @@ class Registrar:
             weights_sha256=self.weights_sha256,
             timings=dict(result.timings),
             cues=dict(result.cues),
+            recipe=recipe.as_dict(),
         )
         if self.fallback and registration.confidence < self.fallback_below:
-            return self._second_opinion(registration, src, tgt, seed)
+            # the recipe of the run (its gate ran the fallback), whichever result is kept
+            kept = self._second_opinion(registration, src, tgt, seed)
+            return kept._replace(recipe=registration.recipe)
         return registration
+
+    def recipe_of(
+        self,
+        estimator: str | None = None,
+        refine: str | None = None,
+        max_points: int | None = None,
+        num_correspondences: int | None = None,
+        seed: int | None = None,
+    ) -> RegistrationRecipe:
+        """The registrar's recipe changed by :meth:`match`'s arguments (None: unchanged).
+
+        Raises:
+            ValueError: a value out of its range (:class:`~byoc_cli.pipeline.recipe.RecipeError`).
+        """
+        if refine == "icp":
+            warnings.warn(
+                "--refine icp is deprecated: the multiscale refinement runs",
+                DeprecationWarning,
+                stacklevel=3,
+            )
+            refine = "multiscale"
+        return self.recipe.changed(
+            fitting__estimator=estimator,
+            refinement__method=refine,
+            matching__max_points=max_points,
+            matching__correspondences=num_correspondences,
+            seed=seed,
+        )
 
     def _second_opinion(
         self, first: Registration, src: Features, tgt: Features, seed: int
@@ -481,7 +549,8 @@ class Registrar:
         """
         start = time.perf_counter()
         load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
-        multiscale = (settings.get("refine") or self.defaults["refine"]) == "multiscale"
+        refine = settings.get("refine") or self.recipe.refinement.method
+        multiscale = refine in ("multiscale", "icp")  # (icp: read as multiscale by match)
         pool = _InPlace() if in_worker() else self.executor()
         labels = ((source, "source"), (target, "target"))
         read = [pool.submit(self._loaded, cloud, label, scale, load) for cloud, label in labels]
@@ -591,66 +660,72 @@ def _resolve_device(device: str) -> str:
 def extract_features(
     cloud: Any,
     *,
-    features: str = "byoc",
-    weights: str | os.PathLike[str] | LoadedWeights | None = None,
-    voxel_size: float | str | None = "auto",
-    scale: float | None = None,
+    recipe: RegistrationRecipe | None = None,
     device: str = "auto",
-    intrinsics: str | os.PathLike[str] | None = None,
-    depth_scale: float = 1000.0,
+    **overrides: Any,
 ) -> Features:
     """Per-point features of one cloud (``(N, 3)`` metres or a file); see :class:`Features`.
 
-    For many clouds build one :class:`Registrar` (the weights are loaded once).
+    ``recipe``, ``device`` and the overrides ``features``, ``weights``, ``voxel_size``: see
+    :class:`Registrar`; ``scale``, ``intrinsics``, ``depth_scale``: see
+    :meth:`Registrar.extract`. For many clouds build one :class:`Registrar` (the weights are
+    loaded once).
+
+    Raises:
+        TypeError: an unknown keyword.
     """
-    registrar = Registrar(features, weights, voxel_size, device)
-    return registrar.extract(cloud, scale=scale, intrinsics=intrinsics, depth_scale=depth_scale)
+    unknown = set(overrides) - {*_REGISTRAR_KEYS, *_LOAD_KEYS} - {"fallback"}
+    if unknown:
+        raise TypeError(f"extract_features() got unexpected keyword(s) {sorted(unknown)}")
+    made = {k: overrides[k] for k in ("features", "weights", "voxel_size") if k in overrides}
+    registrar = Registrar(device=device, recipe=recipe, **made)
+    return registrar.extract(cloud, **{k: overrides[k] for k in _LOAD_KEYS if k in overrides})
+
+
+#: :func:`register`'s keywords that go to :class:`Registrar`, to :meth:`Registrar.register`
+#: (the clouds' units) and to :meth:`Registrar.match`
+_REGISTRAR_KEYS = ("features", "weights", "voxel_size", "fallback")
+_LOAD_KEYS = ("scale", "intrinsics", "depth_scale")
+_MATCH_KEYS = ("estimator", "refine", "max_points", "num_correspondences", "seed")
 
 
 def register(
     source: Any,
     target: Any,
     *,
-    features: str = "byoc",
-    weights: str | os.PathLike[str] | LoadedWeights | None = None,
-    voxel_size: float | str | None = "auto",
-    estimator: str | None = None,
-    refine: str | None = None,
-    max_points: int | None = None,
-    num_correspondences: int | None = None,
-    seed: int = 0,
-    scale: float | None = None,
+    recipe: RegistrationRecipe | None = None,
     device: str = "auto",
-    intrinsics: str | os.PathLike[str] | None = None,
-    depth_scale: float = 1000.0,
-    fallback: str | None = "auto",
+    **overrides: Any,
 ) -> Registration:
-    """Register ``source`` onto ``target`` as ``byoc register`` does (same defaults, same T).
+    """Register ``source`` onto ``target`` as ``byoc register`` does (same recipe, same T).
 
     Args:
         source, target: ``(N, 3)`` arrays in metres, or point-cloud / depth-image files.
-        features, weights, voxel_size, device: see :class:`Registrar`.
-        estimator, refine, max_points, num_correspondences, seed: see :meth:`Registrar.match`.
-        scale: multiply the inputs by this (0.001 for millimetres); T is in the input units.
-        intrinsics, depth_scale: for depth-image files.
-        fallback: see :class:`Registrar` (below the default ``--min-confidence``).
+        recipe: the :class:`~byoc_cli.pipeline.recipe.RegistrationRecipe` (None: the preset
+            of ``features``, the learned features' without it).
+        device: see :class:`Registrar`.
+        overrides: keywords that change the recipe or say how to read the inputs:
+            ``features``, ``weights``, ``voxel_size``, ``fallback`` (see :class:`Registrar`);
+            ``estimator``, ``refine``, ``max_points``, ``num_correspondences``, ``seed`` (see
+            :meth:`Registrar.match`); ``scale`` (multiply the inputs by this, 0.001 for
+            millimetres; T is in the input units), ``intrinsics``, ``depth_scale`` (for
+            depth-image files).
 
     Returns:
         :class:`Registration`.
 
     Raises:
         InputError, ShapeError, WeightsError, RegistrationError: see :class:`Registrar`.
+        TypeError: an unknown keyword.
     """
-    registrar = Registrar(features, weights, voxel_size, device, fallback=fallback)
+    unknown = set(overrides) - {*_REGISTRAR_KEYS, *_LOAD_KEYS, *_MATCH_KEYS}
+    if unknown:
+        raise TypeError(f"register() got unexpected keyword(s) {sorted(unknown)}")
+    made = {k: overrides[k] for k in _REGISTRAR_KEYS if k in overrides}
+    registrar = Registrar(device=device, recipe=recipe, **made)
     return registrar.register(
         source,
         target,
-        scale=scale,
-        intrinsics=intrinsics,
-        depth_scale=depth_scale,
-        estimator=estimator,
-        refine=refine,
-        max_points=max_points,
-        num_correspondences=num_correspondences,
-        seed=seed,
+        **{k: overrides[k] for k in _LOAD_KEYS if k in overrides},
+        **{k: overrides[k] for k in _MATCH_KEYS if k in overrides},
     )

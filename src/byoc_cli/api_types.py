@@ -58,7 +58,7 @@ class Registration(NamedTuple):
         num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
         inlier_threshold: in the units of the points (of the input, times ``scale``).
         voxel_size: in the same units.
-        features, estimator, refine: what ran (``refine`` is ``"none"`` or ``"icp"``).
+        features, estimator, refine: what ran (``refine`` is ``"none"`` or ``"multiscale"``).
         max_points, num_correspondences_per_direction, seed: the matching settings.
         weights_sha256: SHA-256 of the weights file (None for fpfh).
         timings: seconds per stage (``features_src``, ``features_tgt``, ``match``, ``fit``,
@@ -71,6 +71,9 @@ class Registration(NamedTuple):
             ``fallback_below`` and FPFH ran too: ``features``, ``used`` (the result is
             FPFH's), ``learned_confidence``, ``confidence`` (FPFH's; None when it could not
             register) and ``seconds``; None when no fallback ran.
+        recipe: the recipe that ran
+            (:meth:`byoc_cli.pipeline.recipe.RegistrationRecipe.as_dict`; the fallback's
+            when its result is kept).
     """
 
     T_tgt_src: np.ndarray
@@ -94,6 +97,7 @@ class Registration(NamedTuple):
     voxel_choice: dict | None = None
     cues: dict[str, float] | None = None
     fallback: dict | None = None
+    recipe: dict | None = None
 
 
 def load_weights(path: str | os.PathLike[str] | None = None) -> LoadedWeights:

@@ -20,14 +20,20 @@ from typing import Any
 import click
 
 from byoc_cli.cli.errors import EXIT_ERROR, EXIT_LOW_CONFIDENCE, EXIT_OK, handle_errors
-from byoc_cli.cli.options import int_option, path_option, resolve_device
-from byoc_cli.cli.register import (
+from byoc_cli.cli.options import (
+    device_option,
+    int_option,
+    path_option,
+    resolve_device,
+    verbosity_options,
+)
+from byoc_cli.cli.pairwise import (
     check_depth_inputs,
-    make_registrar,
-    match_settings,
-    register_options,
+    input_options,
+    registrar,
     registration_report,
 )
+from byoc_cli.cli.recipe_options import PAIRWISE, build_recipe, recipe_options
 
 log = logging.getLogger("byoc")
 
@@ -141,7 +147,10 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     help="Clouds whose features are kept in memory for later pairs (least recently used "
     "dropped first).",
 )
-@register_options
+@recipe_options(*PAIRWISE)
+@input_options
+@device_option
+@verbosity_options
 @handle_errors
 def register_batch(
     pairs: Path,
@@ -164,7 +173,10 @@ def register_batch(
     from byoc_cli.io.pairlist import shard as take_shard
 
     device = resolve_device(options["device"])
-    intrinsics, weights = options["intrinsics"], options["weights"]
+    recipe_file = options.get("recipe_path")
+    recipe = build_recipe(options)
+    intrinsics = options["intrinsics"]
+    weights = None if recipe.features.weights is None else Path(recipe.features.weights)
     entries = read_pair_list(pairs)
     out_dir = pairs.parent if out_dir is None else out_dir
     if out_dir.exists() and not out_dir.is_dir():
@@ -172,7 +184,13 @@ def register_batch(
     # The whole list's inputs and outputs are checked whatever the shard: an output of this
     # shard may be an input of another one (or name the same file as another shard's output).
     whole = _plan(entries, out_dir)
-    inputs = [pairs, intrinsics, weights, *(p for e, _ in whole for p in (e.source, e.target))]
+    inputs = [
+        pairs,
+        intrinsics,
+        weights,
+        recipe_file,
+        *(p for e, _ in whole for p in (e.source, e.target)),
+    ]
     planned = whole
     if shard is not None:
         planned = [whole[e.index] for e in take_shard(entries, shard[0] - 1, shard[1])]
@@ -196,34 +214,23 @@ def register_batch(
             else:
                 todo.append((entry, output))
         # the weights are loaded before the summary is opened: unusable weights leave nothing
-        registrar = None
-        if todo:
-            registrar = make_registrar(
-                options["features"],
-                weights,
-                options["voxel_size"],
-                device,
-                options["fallback"],
-                options["min_confidence"],
-            )
+        made = registrar(recipe, device) if todo else None
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
     started = time.perf_counter()
     with _Summary(summary) as lines:
         for entry, output in skipped:
             lines.write(_record(entry, output, SKIPPED))
-        if registrar is not None:
-            settings = ("estimator", "refine", "max_points", "num_correspondences", "seed")
+        if made is not None:
             run = _PairRunner(
-                registrar,
+                made,
                 FeatureCache(2 * cache_size),  # clouds and their features
-                match_settings(*(options[name] for name in settings)),
                 {
                     "scale": options["scale"],
                     "intrinsics": intrinsics,
                     "depth_scale": options["depth_scale"],
                 },
-                options["min_confidence"],
+                {"min_confidence": recipe.gate.min_confidence, "device": device},
                 inputs,
             )
             with _Progress(len(todo)) as progress:
@@ -266,9 +273,9 @@ class _PairRunner:
     #: pairs submitted ahead of the one being written, per worker thread
     AHEAD = 2
 
-    def __init__(self, registrar, cache, settings, load, min_confidence, inputs) -> None:
-        self.registrar, self.cache, self.settings = registrar, cache, settings
-        self.load, self.min_confidence, self.inputs = load, min_confidence, inputs
+    def __init__(self, registrar, cache, load: dict, gate: dict, inputs) -> None:
+        self.registrar, self.cache, self.load, self.inputs = registrar, cache, load, inputs
+        self.min_confidence, self.device = gate["min_confidence"], gate["device"]
 
     def in_order(self, todo) -> Iterator[tuple[Any, float]]:
         """:meth:`compute` of every ``(entry, output)`` of ``todo``, run side by side on the
@@ -303,7 +310,7 @@ class _PairRunner:
                 ]
             src = self._features(cloud_src, entry.source, voxels[0], timings, "features_src")
             tgt = self._features(cloud_tgt, entry.target, voxels[1], timings, "features_tgt")
-            result = self.registrar.match(src, tgt, **self.settings)
+            result = self.registrar.match(src, tgt)
             result = result._replace(
                 timings={**timings, **result.timings},
                 voxel_choice=None if choice is None else choice.as_dict(),
@@ -359,16 +366,13 @@ class _PairRunner:
             message = " ".join(str(exc).split()) or type(exc).__name__
             return _record(entry, output, FAILED, message)
         passed = result.confidence >= self.min_confidence
-        report = registration_report(
-            result,
-            self.registrar,
-            entry.source,
-            entry.target,
-            self.min_confidence,
-            self.load["scale"],
-            self.registrar.device,
-            time.perf_counter(),
-        )
+        run = {
+            "min_confidence": self.min_confidence,
+            "scale": self.load["scale"],
+            "device": self.device,
+            "started": time.perf_counter(),
+        }
+        report = registration_report(result, self.registrar, (entry.source, entry.target), run)
         del report["timings_s"]["command"]
         report["timings_s"]["pair"] = seconds
         return {**_record(entry, output, OK if passed else LOW_CONFIDENCE), **report}

@@ -25,6 +25,7 @@ from byoc_cli.cli.options import (
     verbose_option,
 )
 from byoc_cli.cli.output import claim_outputs, write_json
+from byoc_cli.pipeline.recipe import PRESETS
 
 #: ``--method`` when none is given.
 DEFAULT_METHODS = ("byoc", "fpfh-ransac")
@@ -132,7 +133,10 @@ eval_options = apply(
     ),
     int_option("--limit", min=1, help="At most N pairs per scene / sequence (the first ones)."),
     float_option(
-        "--fpfh-voxel-size", type=VOXEL, default=0.05, help="Voxel size (m) of the FPFH methods."
+        "--fpfh-voxel-size",
+        type=VOXEL,
+        default=PRESETS["fpfh"].features.reference_voxel,
+        help="Voxel size (m) of the FPFH methods (the fpfh recipe's by default).",
     ),
     float_option(
         "--icp-distance",

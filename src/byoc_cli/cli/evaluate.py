@@ -77,10 +77,6 @@ def eval_fmr(
     gt_dir: Path | None,
     scenes: tuple[str, ...],
     allow_missing: bool,
-    num_samples: int,
-    tau1: float,
-    tau2: float,
-    top_k: int,
     **common: Any,
 ) -> None:
     """Feature-match recall and registration on a 3DMatch-layout benchmark ROOT
@@ -98,6 +94,8 @@ def eval_fmr(
     from byoc_cli.evaluation.report import fmr_report, fmr_table
     from byoc_cli.io.threedmatch import discover_benchmark
 
+    protocol = {name: common.pop(name) for name in ("num_samples", "tau1", "tau2", "top_k")}
+    num_samples = protocol["num_samples"]
     run = EvalRun(**common)
     run.start(input_dirs=(root, gt_dir))
     found = _select_scenes(discover_benchmark(root, gt_dir), scenes)
@@ -109,7 +107,7 @@ def eval_fmr(
             "fragments)",
         )
     methods = run.build_methods(max_points=num_samples)
-    config = FmrConfig(tau1=tau1, tau2=tau2, num_samples=num_samples, top_k=top_k, seed=run.seed)
+    config = FmrConfig(**protocol, seed=run.seed)
     with EvalDisplay(run.quiet) as display:
         result = evaluate_fmr(pair_set, methods, config, FeatureCache(run.cache_dir), display)
     settings = {

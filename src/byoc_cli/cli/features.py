@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import logging
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -18,15 +19,11 @@ from byoc_cli.cli.errors import handle_errors
 from byoc_cli.cli.options import (
     DEPTH_SCALE,
     SCALE,
-    apply,
     device_option,
-    features_option,
     float_option,
     path_option,
     resolve_device,
     verbosity_options,
-    voxel_size_option,
-    weights_option,
 )
 from byoc_cli.cli.output import (
     check_binary_stdout,
@@ -35,7 +32,8 @@ from byoc_cli.cli.output import (
     write_json,
     write_stdout_bytes,
 )
-from byoc_cli.cli.register import check_depth_inputs, make_registrar
+from byoc_cli.cli.pairwise import check_depth_inputs, registrar
+from byoc_cli.cli.recipe_options import build_recipe, recipe_options
 
 log = logging.getLogger("byoc")
 
@@ -80,7 +78,7 @@ def _npz_bytes(feats) -> bytes:
     is_flag=True,
     help="Write <stem>.points.npy, <stem>.feats.npy and <stem>.meta.json instead of one npz.",
 )
-@apply(features_option, weights_option, voxel_size_option)
+@recipe_options("recipe", "features", "weights", "voxel_size")
 @float_option(
     "--scale",
     type=SCALE,
@@ -94,24 +92,17 @@ def _npz_bytes(feats) -> bytes:
 @device_option
 @verbosity_options
 @handle_errors
-def features(
-    cloud: Path,
-    output: Path,
-    npy: bool,
-    features: str,
-    weights: Path | None,
-    voxel_size: float | None,
-    scale: float | None,
-    intrinsics: Path | None,
-    depth_scale: float,
-    device: str,
-) -> None:
+def features(cloud: Path, output: Path, npy: bool, intrinsics: Path | None, **options: Any) -> None:
     """Write the kept points of CLOUD and their features (the encoder's, or FPFH) for
     TEASER++, Open3D's RANSAC or a matcher of your own (docs/pipelines.md).
     """
     from byoc_cli.io import atomic_write_bytes
 
-    device = resolve_device(device)
+    device = resolve_device(options.pop("device"))
+    scale, depth_scale = options.pop("scale"), options.pop("depth_scale")
+    recipe_file = options.get("recipe_path")
+    recipe = build_recipe(options)
+    weights = None if recipe.features.weights is None else Path(recipe.features.weights)
     check_depth_inputs((cloud,), intrinsics)
     if npy and is_stdout(output):
         raise click.BadParameter(
@@ -128,9 +119,9 @@ def features(
         claimed = {f"-o ({kind})": path for kind, path in names.items()}
     else:
         claimed = {"-o": output}
-    outputs = claim_outputs(claimed, inputs=(cloud, intrinsics, weights))
-    registrar = make_registrar(features, weights, voxel_size, device)
-    feats = registrar.extract(cloud, scale=scale, intrinsics=intrinsics, depth_scale=depth_scale)
+    outputs = claim_outputs(claimed, inputs=(cloud, intrinsics, weights, recipe_file))
+    made = registrar(recipe, device)
+    feats = made.extract(cloud, scale=scale, intrinsics=intrinsics, depth_scale=depth_scale)
     with outputs:
         if npy:
             atomic_write_bytes(names["points"], _npy_bytes(feats.points))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -123,14 +124,9 @@ def make_fragments(
     rgbd_dir: Path,
     out: Path,
     scene: str | None,
-    frames_per_fragment: int,
-    stride: int | None,
-    tsdf_voxel: float,
-    sdf_trunc: float,
-    depth_trunc: float,
-    min_overlap: float,
     intrinsics: Path | None,
     depth_scale: float | None,
+    **fusion: Any,
 ) -> None:
     """Fuse every N frames of a posed RGB-D sequence into a fragment (TSDF, 3DMatch recipe)
     and write the 3DMatch benchmark layout with gt.log, gt.info and gt_overlap.log.
@@ -139,8 +135,15 @@ def make_fragments(
     whose overlap exceeds --min-overlap, with the matrix that maps fragment j into i.
     Progress goes to stderr, a one-line summary to stdout.
     """
-    from byoc_cli.pipeline.fragments import make_fragment_benchmark
+    from byoc_cli.pipeline.fragments import FragmentSettings, make_fragment_benchmark
 
+    fusion["voxel_size"] = fusion.pop("tsdf_voxel")
+    settings = FragmentSettings(**fusion)
+    tsdf_voxel, sdf_trunc, min_overlap = (
+        settings.voxel_size,
+        settings.sdf_trunc,
+        settings.min_overlap,
+    )
     if sdf_trunc <= tsdf_voxel:
         raise click.BadParameter(
             f"must exceed --tsdf-voxel ({tsdf_voxel})", param_hint="'--sdf-trunc'"
@@ -170,10 +173,8 @@ def make_fragments(
 
     try:
         result = make_fragment_benchmark(
-            sequence, out, scene=scene, frames_per_fragment=frames_per_fragment,
-            stride=stride, voxel_size=tsdf_voxel, sdf_trunc=sdf_trunc,
-            depth_trunc=depth_trunc, min_overlap=min_overlap, on_fragment=on_fragment,
-        )  # fmt: skip
+            sequence, out, scene=scene, on_fragment=on_fragment, **fusion
+        )
     except ValueError as exc:
         if "scene name" in str(exc):
             raise click.BadParameter(str(exc), param_hint="'--scene'") from exc

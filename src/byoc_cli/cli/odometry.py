@@ -19,17 +19,13 @@ from byoc_cli.cli.options import (
     VOXEL,
     apply,
     device_option,
-    features_option,
     finite_float,
-    fixed_voxel_size_option,
     float_option,
     int_option,
     path_option,
     quiet_option,
     resolve_device,
-    seed_option,
     verbose_option,
-    weights_option,
 )
 from byoc_cli.cli.output import (
     claim_outputs,
@@ -39,6 +35,8 @@ from byoc_cli.cli.output import (
     write_stdout,
 )
 from byoc_cli.cli.pairwise import StageProgress, pairwise_setup
+from byoc_cli.cli.recipe_options import build_recipe, recipe_options
+from byoc_cli.pipeline.recipe import RegistrationRecipe
 
 log = logging.getLogger("byoc")
 
@@ -47,9 +45,6 @@ log = logging.getLogger("byoc")
 class OdometryOptions:
     """The options of ``odometry`` besides the sequence, the outputs, ``--eval`` and ``-q``."""
 
-    features: str
-    weights: Path | None
-    voxel_size: float | None
     icp_voxel: float
     max_depth: float
     frame_stride: int
@@ -60,8 +55,9 @@ class OdometryOptions:
     pose_graph: bool
     intrinsics: Path | None
     depth_scale: float | None
-    seed: int
     device: str
+    recipe: RegistrationRecipe
+    recipe_file: Path | None = None
 
 
 def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float | None):
@@ -185,9 +181,15 @@ def _print_eval(report: dict, name: str) -> None:
         is_flag=True,
         help="Compare with the sequence's ground truth: ATE and RPE (TUM) on stderr.",
     ),
-    features_option,
-    weights_option,
-    fixed_voxel_size_option,
+    recipe_options(
+        "recipe",
+        "features",
+        "weights",
+        "fixed_voxel_size",
+        "estimator",
+        "max_points",
+        "num_correspondences",
+    ),
     float_option(
         "--icp-voxel",
         type=VOXEL,
@@ -224,7 +226,7 @@ def _print_eval(report: dict, name: str) -> None:
     float_option(
         "--depth-scale", type=DEPTH_SCALE, help="Depth units per metre [default: the layout's]."
     ),
-    seed_option,
+    recipe_options("seed"),
     device_option,
     verbose_option,
     quiet_option("No progress bar; only errors on stderr.", expose_value=True),
@@ -250,16 +252,19 @@ def odometry(
 
     started = time.perf_counter()
     options["device"] = resolve_device(options["device"])
-    o = OdometryOptions(**options)
+    recipe_file = options.get("recipe_path")
+    recipe = build_recipe(options)
+    if recipe.features.voxel == "auto":  # depth frames are in metres: the features' own voxel
+        recipe = recipe.changed(features__voxel="own")
+    o = OdometryOptions(**options, recipe=recipe, recipe_file=recipe_file)
     output = main_output(output, json_path)
+    weights = None if recipe.features.weights is None else Path(recipe.features.weights)
     outputs = claim_outputs(
         {"-o": output, "--json": json_path},
-        inputs=(o.intrinsics, o.weights),
+        inputs=(o.intrinsics, weights, recipe_file),
         input_dirs=(rgbd_dir,),
     )
-    extractor, register_config, weights_info = pairwise_setup(
-        o.features, o.weights, o.voxel_size, o.device, o.seed
-    )
+    extractor, register_config, weights_info = pairwise_setup(recipe, o.device)
     sequence = _load_sequence(rgbd_dir, o.intrinsics, o.depth_scale)
     config = OdometryConfig(
         voxel_size=o.icp_voxel,
@@ -270,7 +275,7 @@ def odometry(
         keyframe_rotation_deg=o.keyframe_rotation,
         keyframe_translation=o.keyframe_translation,
         pose_graph=o.pose_graph,
-        seed=o.seed,
+        seed=recipe.seed,
     )
     progress = StageProgress(quiet)
     try:
@@ -296,6 +301,7 @@ def odometry(
         "lost_frames": [frames[n].index for n in trajectory.lost],
         "stats": trajectory.stats,
         "settings": {**config_dict(config), "features": extractor.name},
+        "recipe": recipe.as_dict(),
         "weights": weights_info,
         "evaluation": evaluation,
         "timings_s": {**trajectory.timings, "command": seconds},

@@ -137,24 +137,6 @@ class VoxelSize(click.ParamType):
         return VOXEL_ANY_UNIT.convert(value, param, ctx)
 
 
-voxel_size_option = click.option(
-    "--voxel-size",
-    type=VoxelSize(),
-    default="auto",
-    show_default=True,
-    help="Feature voxel, in the units of the points. auto: read from the clouds: the "
-    "features' own voxel (the weights' 0.025 m for byoc, 0.05 m for fpfh) for scans the size "
-    "of a room or a desk, scaled with the scan's size outside that range (millimetres, small "
-    "objects, LiDAR), and at least 1.8 point spacings of the sparser cloud; the JSON report "
-    "says which and why. A number turns auto off.",
-)
-#: ``--voxel-size`` of the commands that register a whole set with one voxel (no auto yet)
-fixed_voxel_size_option = float_option(
-    "--voxel-size",
-    type=VOXEL,
-    default=None,
-    help="Voxel size in metres [default: the weights' voxel size (0.025) for byoc, 0.05 for fpfh].",
-)
 seed_option = click.option(
     "--seed",
     type=SEED,
@@ -168,16 +150,6 @@ device_option = choice_option(
     choices=DEVICES,
     default="auto",
     help="Where the encoder runs (auto: cuda when available).",
-)
-weights_option = path_option(
-    "--weights", default=None, help="Weights file (weights-spec/ format) for --features byoc."
-)
-features_option = choice_option(
-    "--features",
-    choices=["byoc", "fpfh"],
-    default="byoc",
-    help="byoc: the learned geometric encoder (the shipped weights, or --weights); "
-    "fpfh: Open3D FPFH.",
 )
 
 

@@ -1,8 +1,9 @@
-"""What the commands that register many pairs share: ``byoc register``'s pairwise registration
-(its extractor and its settings for the features) and progress bars per stage.
+"""What the commands that register pairs share: the registrar of a recipe, the pipeline's
+settings of a recipe, the check of depth-image inputs, the JSON report of one registration
+and progress bars per stage.
 
-``register-scans`` and ``odometry`` build on this module, so that no command module imports
-another.
+``register``, ``register-batch``, ``features``, ``register-scans`` and ``odometry`` build on
+this module, so that no command module imports another.
 """
 
 from __future__ import annotations
@@ -14,27 +15,46 @@ from typing import Any
 import click
 
 from byoc_cli.cli.display import is_quiet, progress_bar
+from byoc_cli.cli.options import DEPTH_SCALE, SCALE, apply, float_option, path_option
 
 log = logging.getLogger("byoc")
 
 
-def registrar(
-    features: str,
-    weights: Path | None,
-    voxel_size: float | str | None,
-    device: str,
-    fallback: str = "none",
-    min_confidence: float | None = None,
-):
-    """The API's :class:`~byoc_cli.api.Registrar` for a command's options (``fallback``
-    runs below ``min_confidence``, with byoc features only).
+#: inputs read as depth images (byoc_cli.api.DEPTH_EXTENSIONS, without importing numpy)
+DEPTH_EXTENSIONS = (".png", ".tif", ".tiff")
+
+
+#: the options of one registration besides the recipe's (``register`` and ``register-batch``)
+input_options = apply(
+    float_option(
+        "--scale",
+        type=SCALE,
+        help="Multiply input coordinates by this (0.001 for millimetres); disables the "
+        "unit check. T is written in the input units.",
+    ),
+    path_option(
+        "--intrinsics",
+        help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.",
+    ),
+    float_option(
+        "--depth-scale",
+        type=DEPTH_SCALE,
+        default=1000.0,
+        help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
+    ),
+)
+
+
+def registrar(recipe, device: str):
+    """The API's :class:`~byoc_cli.api.Registrar` of a command's recipe.
 
     Raises:
-        click.UsageError: byoc features, no ``--weights`` and no shipped weights.
+        click.UsageError: byoc features, no weights file and no shipped weights.
     """
     from byoc_cli.api import Registrar
     from byoc_cli.pipeline.default_weights import default_weights_path
 
+    features, weights = recipe.features.kind, recipe.features.weights
     if features == "fpfh" and weights is not None:
         log.warning("--weights %s is not used: --features fpfh needs no weights", weights)
     if features == "byoc" and weights is None and default_weights_path() is None:
@@ -42,31 +62,76 @@ def registrar(
             "--features byoc needs --weights PATH (this install ships no trained weights); "
             "or use --features fpfh"
         )
-    use = fallback if fallback != "none" and features == "byoc" else None
-    return Registrar(
-        features, weights, voxel_size, device, fallback=use, fallback_below=min_confidence
-    )
+    return Registrar(device=device, recipe=recipe)
 
 
-def pairwise_setup(
-    features: str, weights: Path | None, voxel_size: float | None, device: str, seed: int
-) -> tuple[Any, Any, dict | None]:
-    """The extractor and settings of ``byoc register`` for ``features``.
+def pairwise_setup(recipe, device: str) -> tuple[Any, Any, dict | None]:
+    """The extractor and the registration settings of ``recipe`` without its refinement
+    (``register-scans`` and ``odometry`` refine on their own), for commands that register
+    many clouds with the pipeline directly.
 
     Returns:
         ``(extractor, RegisterConfig, weights_info | None)``.
     """
-    from byoc_cli.pipeline.register import FEATURE_DEFAULTS, RegisterConfig
+    from byoc_cli.pipeline.register import register_config
 
-    made = registrar(features, weights, voxel_size, device)
-    defaults = FEATURE_DEFAULTS[features]
-    config = RegisterConfig(
-        num_correspondences=defaults["num_correspondences"],
-        max_points=defaults["max_points"],
-        estimator=defaults["estimator"],
-        seed=seed,
-    )
-    return made.extractor, config, made.weights_info
+    made = registrar(recipe, device)
+    return made.extractor, register_config(recipe, refine=False), made.weights_info
+
+
+def check_depth_inputs(paths, intrinsics: Path | None) -> None:
+    """A depth-image input without ``--intrinsics`` is a usage error; ``--intrinsics`` without
+    a depth-image input is not used, and a warning says so."""
+    depth = [p for p in paths if Path(p).suffix.lower() in DEPTH_EXTENSIONS]
+    if depth and intrinsics is None:
+        raise click.BadParameter(
+            f"{depth[0]} is a depth image: --intrinsics is required", param_hint="'--intrinsics'"
+        )
+    if intrinsics is not None and not depth:
+        log.warning("--intrinsics %s is not used: no input is a depth image", intrinsics)
+
+
+def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -> dict:
+    """The JSON report of one registration (``register --json``, a line of the batch
+    summary); ``run``: ``min_confidence``, ``scale``, ``device`` and ``started`` (the
+    ``perf_counter`` the command started at)."""
+    import time
+
+    from byoc_cli import __version__
+
+    timings = {**result.timings, "command": time.perf_counter() - run["started"]}
+    return {
+        "source": str(pair[0]),
+        "target": str(pair[1]),
+        "T_tgt_src": result.T_tgt_src.tolist(),
+        "convention": "x_tgt = R x_src + t; T is 4x4 on column vectors",
+        "features": result.features,
+        "estimator": result.estimator,
+        "refine": result.refine,
+        "num_points_src": result.num_points_src,
+        "num_points_tgt": result.num_points_tgt,
+        "num_correspondences": result.num_correspondences,
+        "num_inliers": result.num_inliers,
+        "inlier_ratio": result.inlier_ratio,
+        "inlier_threshold_m": result.inlier_threshold,
+        "overlap": result.overlap,
+        "confidence": result.confidence,
+        "cues": result.cues,
+        "min_confidence": run["min_confidence"],
+        "passed": result.confidence >= run["min_confidence"],
+        "voxel_size_m": result.voxel_size,
+        "voxel_choice": result.voxel_choice,
+        "fallback": result.fallback,
+        "scale": run["scale"],
+        "max_points": result.max_points,
+        "seed": result.seed,
+        "recipe": result.recipe,
+        "device": run["device"],
+        "weights": registrar.weights_info,
+        "weights_sha256": result.weights_sha256,
+        "byoc_cli_version": __version__,
+        "timings_s": timings,
+    }
 
 
 class StageProgress:

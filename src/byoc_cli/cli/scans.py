@@ -17,19 +17,18 @@ from byoc_cli.cli.options import (
     VOXEL,
     apply,
     device_option,
-    features_option,
     finite_float,
     float_option,
     int_option,
     path_option,
     quiet_option,
     resolve_device,
-    seed_option,
     verbose_option,
-    weights_option,
 )
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 from byoc_cli.cli.pairwise import StageProgress, pairwise_setup
+from byoc_cli.cli.recipe_options import build_recipe, recipe_options
+from byoc_cli.pipeline.recipe import RegistrationRecipe
 
 log = logging.getLogger("byoc")
 
@@ -45,16 +44,14 @@ class ScansOptions:
 
     merged: Path | None
     merged_voxel: float
-    features: str
-    weights: Path | None
-    voxel_size: float | None
     icp_voxel: float
     min_fitness: float
     all_pairs_max: int
     neighbours: int
     scale: float | None
-    seed: int
     device: str
+    recipe: RegistrationRecipe
+    recipe_file: Path | None = None
 
 
 def _is_scans_folder(folder: Path) -> bool:
@@ -169,17 +166,17 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
     float_option(
         "--merged-voxel", type=VOXEL, default=0.01, help="Voxel size of the merged model, metres."
     ),
-    features_option,
-    weights_option,
+    recipe_options("recipe", "features", "weights"),
     float_option(
         "--voxel-size",
         type=VOXEL,
         default=None,
         help="Feature voxel in metres [default: from the scans: at the size of rooms and "
-        "desks the features' own (0.025 for byoc, 0.05 for fpfh); scans of another size "
-        "(objects, LiDAR, millimetres) are scaled to it, the report says by how much, and "
-        "poses and the merged model are written in the input units].",
+        "desks the features' own; scans of another size (objects, LiDAR, millimetres) are "
+        "scaled to it, the report says by how much, and poses and the merged model are "
+        "written in the input units].",
     ),
+    recipe_options("estimator", "max_points", "num_correspondences"),
     float_option(
         "--icp-voxel",
         type=VOXEL,
@@ -212,7 +209,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
         help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
         "check. Poses and the merged model are written in the input units.",
     ),
-    seed_option,
+    recipe_options("seed"),
     device_option,
     verbose_option,
     quiet_option("No progress bars; only errors on stderr.", expose_value=True),
@@ -228,7 +225,9 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
     """
     started = time.perf_counter()
     options["device"] = resolve_device(options["device"])
-    settings = ScansOptions(**options)
+    recipe_file = options.get("recipe_path")
+    recipe = build_recipe(options)
+    settings = ScansOptions(**options, recipe=recipe, recipe_file=recipe_file)
     scans_list = list(scans)
     if len(scans_list) < 2:
         raise click.UsageError("register-scans needs at least 2 scans")
@@ -269,14 +268,12 @@ def _run(
             "--merged": options.merged,
             **{f"pose {k}": p for k, p in enumerate(pose_paths)},
         },
-        inputs=(*scans, options.weights),
+        inputs=(*scans, _path(options.recipe.features.weights), options.recipe_file),
     )
-    extractor, register_config, weights_info = pairwise_setup(
-        options.features, options.weights, options.voxel_size, options.device, options.seed
-    )
+    extractor, register_config, weights_info = pairwise_setup(options.recipe, options.device)
     t0 = time.perf_counter()
     scale = options.scale
-    auto = options.voxel_size is None and scale is None
+    auto = options.recipe.features.voxel == "auto" and scale is None
     points = [_load(path, 1.0 if auto else scale) for path in scans]
     voxel_choice = None
     if auto:  # the scans' own size: brought to the features' scale when it is another
@@ -333,12 +330,13 @@ def _run(
             "estimator": register_config.estimator,
             "num_correspondences": register_config.num_correspondences,
             "max_points": register_config.max_points,
-            "seed": options.seed,
+            "seed": options.recipe.seed,
             "scale": scale,
             "voxel_choice": None if voxel_choice is None else voxel_choice.as_dict(),
             "merged_voxel_m": options.merged_voxel if options.merged is not None else None,
             **config_dict(config),
         },
+        "recipe": options.recipe.as_dict(),
         "weights": weights_info,
         "timings_s": {"load": load_time, **result.timings},
         "pairs_per_s": len(result.pairs) / max(result.timings["pairs"], 1e-9),
@@ -388,6 +386,10 @@ def _auto_scale(points: list, scans: tuple[Path, ...], reference: float):
     )
     choice = choose_voxel(sizes, reference)
     return trained_scale(choice), choice
+
+
+def _path(name: str | None) -> Path | None:
+    return None if name is None else Path(name)
 
 
 def _unscaled(T, unit: float):

@@ -4,25 +4,24 @@ Method names (``--method``):
 
 ``byoc``
     The learned geometric encoder (``--weights``, or the shipped weights), voxel size from
-    the weights (2.5 cm), with ``byoc register``'s defaults for learned features
-    (``pipeline.register.FEATURE_DEFAULTS``: top 1000 ratio-test correspondences per
-    direction, RANSAC).
+    the weights, with the matching, fit and refinement of ``byoc register``'s recipe for
+    learned features (``pipeline.recipe.PRESETS["byoc"]``).
 ``byoc-random``
     The same pipeline on a seeded random ``compact`` encoder (reported as ``random-init``).
 ``fpfh-ransac``
-    Open3D FPFH at a 5 cm voxel, top 1000 per direction, correspondence RANSAC (inlier
-    threshold 2 voxels, at most 100k iterations, confidence 0.999): ``byoc register
-    --features fpfh`` defaults.
+    Open3D FPFH at the voxel of ``--fpfh-voxel-size``, with the matching and fit of ``byoc
+    register --features fpfh`` (``pipeline.recipe.PRESETS["fpfh"]``).
 ``fpfh-procrustes``
-    The same FPFH features with the paper's pipeline (top 200, randomized Procrustes).
+    The same FPFH features with the paper's matching and fit (``pipeline.recipe.PAPER``:
+    the top 200 per direction, randomized Procrustes).
 ``icp-point`` / ``icp-plane``
     Open3D point-to-point / point-to-plane ICP from the identity on clouds voxelised at
     2.5 cm, correspondences up to :data:`ICP_MAX_DISTANCE` (10 cm), 50 iterations.
 ``identity``
     ``T = I``: the motion of the pair itself, a floor for every method.
 
-Feature methods use a seeded random subset of 5000 kept points per cloud, as ``byoc
-register``. A registration that raises (e.g. fewer than 3 correspondences) returns the
+Feature methods use a seeded random subset of ``max_points`` kept points per cloud
+(``--num-samples``). A registration that raises (e.g. fewer than 3 correspondences) returns the
 identity and is counted as failed.
 """
 
@@ -39,11 +38,12 @@ import torch
 from byoc_cli.errors import RegistrationError
 from byoc_cli.geometry import voxelize
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
+from byoc_cli.pipeline.recipe import PAPER, PRESETS, RegistrationRecipe
 from byoc_cli.pipeline.register import (
-    FEATURE_DEFAULTS,
     RegisterConfig,
     estimate_transform,
     refine_icp,
+    register_config,
 )
 
 __all__ = [
@@ -72,8 +72,8 @@ METHOD_NAMES = (
     "icp-plane",
     "identity",
 )
-#: FPFH voxel size (m): Open3D's tutorial value, as ``byoc register --features fpfh``.
-FPFH_VOXEL_SIZE = 0.05
+#: FPFH voxel size (m): the fpfh recipe's, as ``byoc register --features fpfh``.
+FPFH_VOXEL_SIZE = PRESETS["fpfh"].features.reference_voxel
 #: ICP input voxel size (m).
 ICP_VOXEL_SIZE = 0.025
 #: ICP's largest correspondence distance (m).
@@ -83,11 +83,21 @@ ICP_MAX_ITERATION = 50
 #: Architecture of the random encoder used for ``byoc`` without weights.
 DEFAULT_ARCH = "compact"
 
-_SETTINGS = {
-    "byoc": {k: v for k, v in FEATURE_DEFAULTS["byoc"].items() if k != "max_points"},
-    "fpfh-ransac": {"estimator": "ransac", "num_correspondences": 1000},
-    "fpfh-procrustes": {"estimator": "procrustes", "num_correspondences": 200},
+#: the recipe of each feature method (its matching, fit and refinement; ``max_points`` is
+#: the run's)
+RECIPES: dict[str, RegistrationRecipe] = {
+    "byoc": PRESETS["byoc"],
+    "fpfh-ransac": PRESETS["fpfh"],
+    "fpfh-procrustes": PAPER,
 }
+
+
+def _config(kind: str, max_points: int) -> RegisterConfig:
+    """The settings of feature method ``kind`` with ``max_points`` per cloud (the
+    confidence model of the learned features, as before the recipes: the evaluation reads
+    no confidence)."""
+    recipe = RECIPES[kind].changed(matching__max_points=max_points)
+    return dataclasses.replace(register_config(recipe), confidence_model="byoc")
 
 
 @dataclass
@@ -366,7 +376,7 @@ def build_methods(
     device: str = "cpu",
     fpfh_voxel_size: float = FPFH_VOXEL_SIZE,
     icp_distance: float = ICP_MAX_DISTANCE,
-    max_points: int = 5000,
+    max_points: int = PRESETS["byoc"].matching.max_points,
 ) -> list[Method]:
     """Build the method columns.
 
@@ -394,16 +404,13 @@ def build_methods(
     for name in names:
         if name == "byoc":
             for spec in _byoc_specs(weights, seed, device):
-                config = RegisterConfig(max_points=max_points, **_SETTINGS["byoc"])
-                methods.append(Method(spec.key, "byoc", spec, config))
+                methods.append(Method(spec.key, "byoc", spec, _config("byoc", max_points)))
         elif name == "byoc-random":
             spec = _random_spec(seed, device)
-            config = RegisterConfig(max_points=max_points, **_SETTINGS["byoc"])
-            methods.append(Method(spec.key, "byoc", spec, config))
+            methods.append(Method(spec.key, "byoc", spec, _config("byoc", max_points)))
         elif name in ("fpfh-ransac", "fpfh-procrustes"):
             fpfh = fpfh or _fpfh_spec(fpfh_voxel_size)
-            config = RegisterConfig(max_points=max_points, **_SETTINGS[name])
-            methods.append(Method(name, name, fpfh, config))
+            methods.append(Method(name, name, fpfh, _config(name, max_points)))
         elif name in ("icp-point", "icp-plane"):
             methods.append(Method(name, name, icp_distance=icp_distance))
         elif name == "identity":

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -113,6 +115,23 @@ class _CandidateScorer:
         return count, trunc - self.thr2 * (self.num - count)
 
 
+@dataclass(frozen=True)
+class RansacTuning:
+    """How :func:`ransac` draws and refits (its keyword arguments besides the limits).
+
+    Attributes:
+        batch_size: minimal sets per batch (capped so that ``batch * K`` stays within
+            :data:`SCORE_BUDGET`).
+        edge_length_ratio: similarity in ``(0, 1]`` for the edge-length check; ``None``
+            turns it off.
+        refit_iterations: Procrustes refits on the inliers (>= 0).
+    """
+
+    batch_size: int = 1024
+    edge_length_ratio: float | None = 0.9
+    refit_iterations: int = 2
+
+
 def ransac(
     points_src: torch.Tensor,
     points_tgt: torch.Tensor,
@@ -120,9 +139,7 @@ def ransac(
     max_iterations: int = 100_000,
     confidence: float = 0.999,
     generator: torch.Generator | None = None,
-    batch_size: int = 1024,
-    edge_length_ratio: float | None = 0.9,
-    refit_iterations: int = 2,
+    **tuning: Any,
 ) -> FitResult:
     """Correspondence RANSAC: ``T_tgt_src`` with the most inliers ``|T p_i - q_i| < threshold``.
 
@@ -145,11 +162,8 @@ def ransac(
         confidence: probability in ``(0, 1]`` of having drawn one all-inlier set.
         generator: source of the minimal sets; indices are drawn on its device. ``None``
             uses a fresh generator seeded with 0.
-        batch_size: minimal sets per batch (capped so that ``batch * K`` stays within
-            :data:`SCORE_BUDGET`).
-        edge_length_ratio: similarity in ``(0, 1]`` for the edge-length check; ``None``
-            turns it off.
-        refit_iterations: Procrustes refits on the inliers (>= 0).
+        tuning: ``batch_size``, ``edge_length_ratio``, ``refit_iterations``: see
+            :class:`RansacTuning`.
 
     Returns:
         :class:`FitResult`; ``score`` is the inlier RMSE, ``iterations`` the minimal sets
@@ -160,7 +174,11 @@ def ransac(
         ShapeError: shapes are not ``(K, 3)``.
         RegistrationError: fewer than 3 correspondences.
         ValueError: an argument is out of range.
+        TypeError: an unknown keyword.
     """
+    tuned = RansacTuning(**tuning)
+    batch_size, edge_length_ratio = tuned.batch_size, tuned.edge_length_ratio
+    refit_iterations = tuned.refit_iterations
     _check_correspondence_shapes(points_src, points_tgt, None)
     if points_src.ndim != 2 or points_tgt.ndim != 2:
         raise ShapeError("ransac takes (K, 3) and (K, 3) tensors")

@@ -30,6 +30,7 @@ import re
 import shutil
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -230,19 +231,32 @@ def _manifest(
     ) + "\n"  # fmt: skip
 
 
+@dataclass(frozen=True)
+class FragmentSettings:
+    """How :func:`make_fragment_benchmark` cuts, fuses and pairs the fragments.
+
+    Attributes:
+        frames_per_fragment, stride: see :func:`fragment_windows`.
+        voxel_size, sdf_trunc, depth_trunc, min_observations: see :func:`fuse_fragment`.
+        min_overlap: pairs with a larger :func:`fragment_overlap` are kept.
+    """
+
+    frames_per_fragment: int = DEFAULT_FRAMES_PER_FRAGMENT
+    stride: int | None = None
+    voxel_size: float = DEFAULT_TSDF_VOXEL
+    sdf_trunc: float = DEFAULT_SDF_TRUNC
+    depth_trunc: float = DEFAULT_DEPTH_TRUNC
+    min_observations: int = DEFAULT_MIN_OBSERVATIONS
+    min_overlap: float = DEFAULT_MIN_OVERLAP
+
+
 def make_fragment_benchmark(
     sequence: RGBDSequence,
     out_dir: str | os.PathLike[str],
     *,
     scene: str,
-    frames_per_fragment: int = DEFAULT_FRAMES_PER_FRAGMENT,
-    stride: int | None = None,
-    voxel_size: float = DEFAULT_TSDF_VOXEL,
-    sdf_trunc: float = DEFAULT_SDF_TRUNC,
-    depth_trunc: float = DEFAULT_DEPTH_TRUNC,
-    min_observations: int = DEFAULT_MIN_OBSERVATIONS,
-    min_overlap: float = DEFAULT_MIN_OVERLAP,
     on_fragment: Callable[[FragmentInfo, int], None] | None = None,
+    **settings: Any,
 ) -> FragmentBenchmark:
     """Fuse a posed sequence into fragments and write a 3DMatch-layout benchmark.
 
@@ -257,10 +271,10 @@ def make_fragment_benchmark(
         sequence: a sequence whose frames all have poses (``T_world_cam``).
         out_dir: the benchmark root; must not exist or be an empty folder.
         scene: the scene name.
-        frames_per_fragment, stride: see :func:`fragment_windows`.
-        voxel_size, sdf_trunc, depth_trunc, min_observations: see :func:`fuse_fragment`.
-        min_overlap: pairs with a larger :func:`fragment_overlap` are kept.
         on_fragment: called with each fused fragment and the number of fragments.
+        settings: the fields of :class:`FragmentSettings` (``frames_per_fragment``,
+            ``stride``, ``voxel_size``, ``sdf_trunc``, ``depth_trunc``,
+            ``min_observations``, ``min_overlap``).
 
     Returns:
         :class:`FragmentBenchmark`.
@@ -271,7 +285,12 @@ def make_fragment_benchmark(
             fragment has no point.
         FrameError: a depth image cannot be read.
         ValueError: bad settings or scene name.
+        TypeError: an unknown setting.
     """
+    fs = FragmentSettings(**settings)
+    frames_per_fragment, stride, min_overlap = fs.frames_per_fragment, fs.stride, fs.min_overlap
+    voxel_size, sdf_trunc, depth_trunc = fs.voxel_size, fs.sdf_trunc, fs.depth_trunc
+    min_observations = fs.min_observations
     out_dir = Path(out_dir)
     scene = _check_scene(scene)
     if not 0.0 <= float(min_overlap) < 1.0:

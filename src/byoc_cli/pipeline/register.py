@@ -21,37 +21,9 @@ from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
 from byoc_cli.pipeline.confidence import MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
+from byoc_cli.pipeline.recipe import ESTIMATORS, PAPER, RegistrationRecipe
 from byoc_cli.pipeline.refine import refine_multiscale
 from byoc_cli.threads import Parallel
-
-ESTIMATORS = ("procrustes", "ransac")
-
-#: per-feature defaults of ``byoc register``, the evaluation methods and the Python API,
-#: chosen by measurement (README "Defaults for learned features", "Choosing --max-points").
-FEATURE_DEFAULTS: dict[str, dict] = {
-    # learned features: RANSAC on the top 2500 ratio-test matches per direction, then
-    # coarse-to-fine point-to-plane ICP on the full clouds that holds sliding directions
-    # (benchmarks/estimators.py, README "Measured levers"): randomized Procrustes registered a
-    # fifth of the development fragments that RANSAC did with the same features; plain ICP
-    # slid along the planes of tum_fr3_cabinet
-    "byoc": {
-        "estimator": "ransac",
-        "num_correspondences": 2500,
-        "max_points": 5000,
-        "refine": "multiscale",
-    },
-    # Open3D's tutorial voxel for FPFH; RANSAC needs more than the top 200 of noisy FPFH
-    # matches; 10000 keeps every point of a 3DMatch fragment at 5 cm (median rotation error
-    # 2.9 deg against 4.8 deg with 5000) and bounds the matching cost of larger scans
-    "fpfh": {
-        "estimator": "ransac",
-        "num_correspondences": 1000,
-        "voxel_size": 0.05,
-        "max_points": 10000,
-        "refine": None,
-    },
-}
-
 
 #: refinements after the robust fit
 REFINERS = (None, "icp", "multiscale")
@@ -59,7 +31,10 @@ REFINERS = (None, "icp", "multiscale")
 
 @dataclass(frozen=True)
 class RegisterConfig:
-    """Settings of :func:`register_clouds` (the CLI's flags map one to one).
+    """Settings of :func:`estimate_transform` and :func:`register_clouds`, flat: a
+    :class:`~byoc_cli.pipeline.recipe.RegistrationRecipe` gives them
+    (:func:`register_config`); the defaults are the paper's
+    (:data:`~byoc_cli.pipeline.recipe.PAPER`).
 
     Attributes:
         num_correspondences: top k ratio-test matches kept per direction (2k in all).
@@ -79,19 +54,19 @@ class RegisterConfig:
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
     """
 
-    num_correspondences: int = 200
-    max_points: int = 5000
-    estimator: str = "procrustes"
-    num_subsets: int = 100
-    subset_size: int = 20
-    inlier_factor: float = 2.0
-    ransac_iterations: int = 100_000
-    ransac_confidence: float = 0.999
+    num_correspondences: int = PAPER.matching.correspondences
+    max_points: int = PAPER.matching.max_points
+    estimator: str = PAPER.fitting.estimator
+    num_subsets: int = PAPER.fitting.num_subsets
+    subset_size: int = PAPER.fitting.subset_size
+    inlier_factor: float = PAPER.fitting.inlier_factor
+    ransac_iterations: int = PAPER.fitting.ransac_iterations
+    ransac_confidence: float = PAPER.fitting.ransac_confidence
     refine: str | None = None
     icp_factor: float = 2.0
-    seed: int = 0
+    seed: int = PAPER.seed
     chunk_size: int | None = None
-    confidence_model: str = "byoc"
+    confidence_model: str = PAPER.features.kind
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -104,6 +79,26 @@ class RegisterConfig:
             )
         if self.num_correspondences < 1 or self.max_points < 0:
             raise ValueError("num_correspondences must be >= 1 and max_points >= 0")
+
+
+def register_config(recipe: RegistrationRecipe, refine: bool = True) -> RegisterConfig:
+    """The :class:`RegisterConfig` of a recipe (``refine=False``: without its refinement,
+    for callers that refine on their own: ``register-scans``, ``odometry``)."""
+    method = recipe.refinement.method if refine else "none"
+    fit = recipe.fitting
+    return RegisterConfig(
+        num_correspondences=recipe.matching.correspondences,
+        max_points=recipe.matching.max_points,
+        estimator=fit.estimator,
+        num_subsets=fit.num_subsets,
+        subset_size=fit.subset_size,
+        inlier_factor=fit.inlier_factor,
+        ransac_iterations=fit.ransac_iterations,
+        ransac_confidence=fit.ransac_confidence,
+        refine=None if method == "none" else method,
+        seed=recipe.seed,
+        confidence_model=recipe.features.kind,
+    )
 
 
 class RegistrationResult(NamedTuple):

@@ -115,18 +115,25 @@ class ScansResult(NamedTuple):
     timings: dict[str, float]
 
 
+class _PairSettings(NamedTuple):
+    """What every pair's registration shares: the pairwise settings, the feature voxel and
+    the keep bar."""
+
+    register_config: RegisterConfig
+    voxel_size: float
+    min_fitness: float
+
+
 def _register_pair(
     feats: list,
     clouds: list[posegraph.PreparedCloud],
-    i: int,
-    j: int,
-    kind: str,
-    register_config: RegisterConfig,
-    voxel_size: float,
-    min_fitness: float,
-    T_prior: np.ndarray | None = None,
+    job: tuple[int, int, str, np.ndarray | None],
+    settings: _PairSettings,
 ) -> PairRecord:
-    """Pairwise registration of ``j`` onto ``i``, ICP refinement, the keep decision."""
+    """Pairwise registration of ``j`` onto ``i`` (``job``: ``i``, ``j``, the pair's kind and
+    a prior ``T_i_j`` or None), ICP refinement, the keep decision."""
+    i, j, kind, T_prior = job
+    register_config, voxel_size, min_fitness = settings
     start = time.perf_counter()
     starts, confidence, error = [], float("nan"), ""
     try:
@@ -315,12 +322,10 @@ def _register_all(arrays, extractor, register_config, config, labels, report, ti
         timings["prepare"] += t_prepare
         report("features", k + 1, num)
 
+    settings = _PairSettings(register_config, extractor.voxel_size, config.min_fitness)
+
     def pair(job: tuple[int, int, str, np.ndarray | None]) -> PairRecord:
-        i, j, kind, prior = job
-        return _register_pair(
-            feats, clouds, i, j, kind, register_config, extractor.voxel_size,
-            config.min_fitness, prior,
-        )  # fmt: skip
+        return _register_pair(feats, clouds, job, settings)
 
     def run(todo: list[tuple[int, int]], kind: str, poses=None) -> list[PairRecord]:
         done = []

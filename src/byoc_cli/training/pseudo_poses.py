@@ -389,25 +389,28 @@ def pairs_from_json(record: dict) -> list[PseudoPair]:
 class LearnedStart:
     """A :data:`GlobalStart` from a geometric encoder (the later rounds of self-posing).
 
-    Ratio-test matches of the encoder's features and RANSAC with the settings ``byoc
-    register`` uses for learned features, without refinement (ICP follows in
+    Ratio-test matches of the encoder's features and the robust fit of a recipe (``byoc
+    register``'s for learned features by default), without its refinement (ICP follows in
     :func:`estimate_pairs`). Each frame is encoded once.
 
     Args:
         encoder: a geometric encoder; a frozen copy is used (the argument is not changed).
         voxel_size: the encoder's voxel (metres).
-        seed: seeds the subsets and RANSAC.
+        seed: seeds the subsets and RANSAC (it replaces the recipe's seed).
+        recipe: the :class:`~byoc_cli.pipeline.recipe.RegistrationRecipe` of the matching
+            and the fit (None: the learned features' preset).
     """
 
-    def __init__(self, encoder: Any, voxel_size: float, seed: int = 0) -> None:
+    def __init__(self, encoder: Any, voxel_size: float, seed: int = 0, recipe: Any = None) -> None:
         import copy
 
         from byoc_cli.pipeline.features import ByocExtractor
-        from byoc_cli.pipeline.register import FEATURE_DEFAULTS, RegisterConfig
+        from byoc_cli.pipeline.recipe import preset
+        from byoc_cli.pipeline.register import register_config
 
         self.extract = ByocExtractor(copy.deepcopy(encoder).cpu(), voxel_size)
-        settings = {k: v for k, v in FEATURE_DEFAULTS["byoc"].items() if k != "refine"}
-        self.config = RegisterConfig(**settings, seed=seed)
+        recipe = (recipe or preset("byoc")).changed(seed=seed)
+        self.config = register_config(recipe, refine=False)
         self.features: dict[int, Any] = {}
 
     def _features(self, index: int, points: np.ndarray) -> Any:

@@ -111,9 +111,8 @@ def register_pair_geometric(
     points_src: torch.Tensor,
     points_tgt: torch.Tensor,
     k: int = 200,
-    num_subsets: int = 100,
-    subset_size: int = 20,
     generator: torch.Generator | None = None,
+    **procrustes: int,
 ) -> PairRegistration:
     """``T_tgt_src`` from geometric features (test-time pipeline).
 
@@ -122,8 +121,10 @@ def register_pair_geometric(
             (call it in eval mode).
         coords_src, coords_tgt: ``(M, 3)`` int64 voxel coordinates of the kept points.
         points_src, points_tgt: ``(M, 3)`` the kept points.
-        k, num_subsets, subset_size: matching and randomized-Procrustes settings.
+        k: ratio-test matches per direction.
         generator: for the subsets.
+        procrustes: ``num_subsets``, ``subset_size`` of :func:`randomized_procrustes`
+            (default: its own).
 
     Returns:
         :class:`PairRegistration` (CPU).
@@ -146,9 +147,8 @@ def register_pair_geometric(
         p,
         q,
         corr.weight.to(torch.float64),
-        num_subsets=num_subsets,
-        subset_size=subset_size,
         generator=generator,
+        **procrustes,
     )
     return PairRegistration(fit.T_tgt_src.to(torch.float64).cpu(), p.cpu(), q.cpu())
 

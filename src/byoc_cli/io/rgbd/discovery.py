@@ -82,10 +82,8 @@ def discover_sequences(
     require_color: bool = False,
     *,
     require_poses: bool = False,
-    max_time_difference: float = 0.02,
-    pose_time_tolerance: float = 0.02,
     verify: bool = False,
-    read_poses: bool = True,
+    **scan: Any,
 ) -> list[RGBDSequence]:
     """Find every RGB-D sequence under ``root`` (recursively) and list its usable frames.
 
@@ -108,11 +106,12 @@ def discover_sequences(
             (:attr:`Layout.depth_scale`: 5000 TUM, 1000 the others).
         require_color: keep only frames with colour; sequences without colour are dropped.
         require_poses: keep only frames with a valid pose.
-        read_poses: False: never open a pose or ground-truth file (training data; every
-            frame's pose is None). Incompatible with ``require_poses``.
-        max_time_difference: TUM rgb-depth association limit, seconds.
-        pose_time_tolerance: TUM ground-truth association limit, seconds.
         verify: decode every image now (slow) instead of failing at read time.
+        scan: the fields of :class:`~byoc_cli.io.rgbd.layout.ScanOptions`:
+            ``max_time_difference`` (TUM rgb-depth association limit, seconds),
+            ``pose_time_tolerance`` (TUM ground-truth association limit, seconds) and
+            ``read_poses`` (False: never open a pose or ground-truth file, training data;
+            every frame's pose is None; incompatible with ``require_poses``).
 
     Returns:
         The sequences (never empty).
@@ -124,7 +123,9 @@ def discover_sequences(
         InputError: the ``intrinsics`` file cannot be used.
         ShapeError: ``intrinsics`` is an array that is not 3x3.
         ValueError: ``depth_scale`` or a tolerance is not a positive number.
+        TypeError: an unknown keyword.
     """
+    options = ScanOptions(**scan)
     root = Path(root)
     if not root.exists():
         raise DatasetError(root, "folder does not exist")
@@ -133,15 +134,14 @@ def discover_sequences(
     if depth_scale is not None and not (math.isfinite(depth_scale) and depth_scale > 0):
         raise ValueError(f"depth_scale must be positive (raw units per metre), got {depth_scale}")
     for label, value in (
-        ("max_time_difference", max_time_difference),
-        ("pose_time_tolerance", pose_time_tolerance),
+        ("max_time_difference", options.max_time_difference),
+        ("pose_time_tolerance", options.pose_time_tolerance),
     ):
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"{label} must be a positive number of seconds, got {value}")
     override = override_K(intrinsics) if intrinsics is not None else None
-    if require_poses and not read_poses:
+    if require_poses and not options.read_poses:
         raise ValueError("require_poses needs read_poses")
-    options = ScanOptions(max_time_difference, pose_time_tolerance, read_poses)
 
     sequences = []
     dropped = {"color": 0, "poses": 0, "frames": 0}

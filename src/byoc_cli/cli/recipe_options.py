@@ -1,0 +1,209 @@
+"""The options of the registration recipe (:mod:`byoc_cli.pipeline.recipe`), made from its
+presets: every default a command's help shows for them is read from
+:data:`~byoc_cli.pipeline.recipe.PRESETS`, never written here.
+
+A command declares the options it takes (:func:`recipe_options`), and :func:`build_recipe`
+turns them into one :class:`~byoc_cli.pipeline.recipe.RegistrationRecipe`: the ``--recipe``
+file, or the preset of ``--features``, changed by the options given on the command line (an
+option left out is None: the recipe's value).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from byoc_cli.cli.options import (
+    SEED,
+    VOXEL,
+    VoxelSize,
+    apply,
+    finite_float,
+    float_option,
+    int_option,
+    path_option,
+)
+from byoc_cli.pipeline import recipe as recipes
+
+
+def _default(path: str, show: Callable[[Any], str] = str) -> str:
+    return f"[default: {recipes.describe_default(path, show)}]"
+
+
+#: the recipe option of each name a command may take (in help order)
+def _options() -> dict[str, Callable]:
+    return {
+        "recipe": path_option(
+            "--recipe",
+            "recipe_path",
+            default=None,
+            help="A recipe file (TOML: a preset and the settings it changes; "
+            "docs/registering.md, Recipes). The options below that are given change it.",
+        ),
+        "features": click.option(
+            "--features",
+            type=click.Choice(list(recipes.PRESETS)),
+            default=None,
+            help="byoc: the learned geometric encoder (the shipped weights, or --weights); "
+            f"fpfh: Open3D FPFH. Each has its preset recipe. [default: {recipes.DEFAULT_PRESET}]",
+        ),
+        "weights": path_option(
+            "--weights", default=None, help="Weights file (weights-spec/ format) for byoc."
+        ),
+        "voxel_size": click.option(
+            "--voxel-size",
+            type=VoxelSize(),
+            default=None,
+            help="Feature voxel, in the units of the points. auto: read from the clouds: the "
+            f"features' own voxel ({_voxel_own()}) for scans the size of a room or a desk, "
+            "scaled with the scan's size outside that range (millimetres, small objects, "
+            "LiDAR), and at least 1.8 point spacings of the sparser cloud; the JSON report "
+            f"says which and why. A number turns auto off. {_default('features.voxel')}",
+        ),
+        "fixed_voxel_size": float_option(
+            "--voxel-size",
+            type=VOXEL,
+            default=None,
+            help=f"Feature voxel in metres [default: the features' own: {_voxel_own()}].",
+        ),
+        "estimator": click.option(
+            "--estimator",
+            type=click.Choice(["auto", *recipes.ESTIMATORS]),
+            default=None,
+            help="RANSAC or randomized weighted Procrustes (the paper's); auto: the "
+            f"recipe's. {_default('fitting.estimator')}",
+        ),
+        "refine": click.option(
+            "--refine",
+            type=click.Choice(["auto", "none", "icp", "multiscale"]),
+            default=None,
+            help="multiscale: coarse-to-fine point-to-plane ICP on the full clouds that holds "
+            "directions the geometry leaves free; icp: deprecated, runs multiscale; auto: "
+            f"the recipe's. {_default('refinement.method')}",
+        ),
+        "max_points": int_option(
+            "--max-points",
+            default=None,
+            help="Seeded random subset of kept points per cloud that enters matching (0 = all) "
+            f"{_default('matching.max_points')}.",
+        ),
+        "num_correspondences": int_option(
+            "--num-correspondences",
+            min=3,
+            default=None,
+            help=f"Top-k ratio-test matches kept per direction "
+            f"{_default('matching.correspondences')}.",
+        ),
+        "min_confidence": float_option(
+            "--min-confidence",
+            type=finite_float(0, 1),
+            default=None,
+            help="Exit 3 when the confidence, the calibrated probability that T is right, is "
+            "below this (the default keeps 95 % of the right results of the development pairs, "
+            f"docs/registering.md; 0 accepts every result) {_default('gate.min_confidence')}.",
+        ),
+        "fallback": click.option(
+            "--fallback",
+            type=click.Choice(list(recipes.FALLBACKS)),
+            default=None,
+            help="With byoc features: when the confidence is below --min-confidence, register "
+            "the pair again with FPFH features (same scale, same refinement) and keep the more "
+            "confident result; the report says which ran (docs/registering.md). none: never. "
+            f"{_default('gate.fallback')}",
+        ),
+        "seed": click.option(
+            "--seed",
+            type=SEED,
+            default=None,
+            help=f"Seeds every random choice; the same seed gives the same result. "
+            f"{_default('seed')}",
+        ),
+    }
+
+
+def _voxel_own() -> str:
+    own = recipes.preset_values("features.reference_voxel")
+    return ", ".join(
+        f"{'the weights' if value is None else f'{value:g} m'} for {kind}"
+        for kind, value in own.items()
+    )
+
+
+#: the option names of :func:`build_recipe` and the recipe field each one changes
+FIELDS = {
+    "features": "features.kind",
+    "weights": "features.weights",
+    "voxel_size": "features.voxel",
+    "estimator": "fitting.estimator",
+    "refine": "refinement.method",
+    "max_points": "matching.max_points",
+    "num_correspondences": "matching.correspondences",
+    "min_confidence": "gate.min_confidence",
+    "fallback": "gate.fallback",
+    "seed": "seed",
+}
+
+
+def recipe_options(*names: str) -> Callable:
+    """The decorator of the recipe options ``names`` (keys of :data:`FIELDS`, ``"recipe"``,
+    or ``"fixed_voxel_size"``: ``--voxel-size`` in metres without auto)."""
+    made = _options()
+    return apply(*(made[name] for name in names))
+
+
+#: every recipe option of a pairwise registration (``register``, ``register-batch``)
+PAIRWISE = (
+    "recipe",
+    "features",
+    "weights",
+    "voxel_size",
+    "estimator",
+    "refine",
+    "max_points",
+    "num_correspondences",
+    "min_confidence",
+    "fallback",
+    "seed",
+)
+
+
+def build_recipe(options: dict[str, Any]) -> recipes.RegistrationRecipe:
+    """The recipe of a command's options; the recipe options are taken out of ``options``.
+
+    ``recipe_path`` (``--recipe``) or the preset of ``features`` is the base; every other
+    option given (not None, not ``auto`` for ``--estimator`` and ``--refine``) changes it.
+    ``--refine icp`` runs the multiscale refinement (a warning says so).
+
+    Raises:
+        InputError: the ``--recipe`` file cannot be read or holds an unusable recipe.
+        click.BadParameter: an option that does not go with the recipe.
+    """
+    import logging
+
+    path: Path | None = options.pop("recipe_path", None)
+    given = {name: options.pop(name) for name in list(options) if name in FIELDS}
+    if path is not None:
+        base = recipes.load_recipe(path)
+    else:
+        base = recipes.preset(given.get("features"))
+    for name in ("estimator", "refine"):
+        if given.get(name) == "auto":
+            given[name] = None
+    if given.get("refine") == "icp":
+        logging.getLogger("byoc").warning(
+            "--refine icp is deprecated: the multiscale refinement runs (docs/registering.md)"
+        )
+        given["refine"] = "multiscale"
+    if given.get("weights") is not None:
+        given["weights"] = str(given["weights"])
+    changes = {FIELDS[name]: value for name, value in given.items()}
+    try:
+        recipe = recipes.with_values(base, changes)
+    except recipes.RecipeError as exc:
+        raise click.BadParameter(str(exc)) from None
+    if recipe.features.kind != "byoc" and recipe.gate.fallback != "none":
+        recipe = recipe.changed(gate__fallback="none")  # the fallback is for learned features
+    return recipe

@@ -1,0 +1,421 @@
+"""The registration recipe: every setting of one pairwise registration, in one tree.
+
+A :class:`RegistrationRecipe` holds what ``byoc register`` does to a pair: the features
+(kind, weights, voxel), the matching (points per cloud, ratio-test matches per direction),
+the robust fit (estimator, its iterations and thresholds), the refinement and the confidence
+gate. :data:`PRESETS` holds one recipe per feature type, chosen by measurement
+(docs/registering.md, "Defaults for learned features"); every default of the tool's
+pairwise registration is stated here once, and the commands' options, their help, the
+Python API, the evaluation methods and the self-posed pairs read it from here.
+
+A recipe is a TOML file (:func:`load_recipe`, :func:`recipe_to_toml`): an optional
+``preset = "byoc"`` (or ``"fpfh"``) and tables that change its fields::
+
+    preset = "byoc"
+    [matching]
+    max_points = 3000
+
+The reports of ``register``, ``register-batch``, ``register-scans`` and ``odometry`` carry the
+recipe they ran (:meth:`RegistrationRecipe.as_dict`); written back as TOML it runs the same
+registration again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
+
+#: feature types
+FEATURE_KINDS = ("byoc", "fpfh")
+#: robust estimators
+ESTIMATORS = ("procrustes", "ransac")
+#: refinements after the robust fit (``"icp"`` is read as ``"multiscale"``, with a warning)
+REFINEMENTS = ("none", "multiscale")
+#: what runs below the gate
+FALLBACKS = ("none", "fpfh")
+
+
+class RecipeError(ValueError):
+    """A recipe (a file, a table, a value) that cannot be used; the message says why."""
+
+
+@dataclass(frozen=True)
+class FeaturesRecipe:
+    """The features of both clouds.
+
+    Attributes:
+        kind: ``"byoc"`` (the learned encoder) or ``"fpfh"`` (Open3D FPFH).
+        weights: a weights file for byoc (None: the shipped weights).
+        voxel: ``"auto"`` (from each pair's clouds, :mod:`byoc_cli.pipeline.scale`),
+            ``"own"`` (the features' own voxel, :attr:`reference_voxel`) or a number (in
+            the units of the points).
+        reference_voxel: the features' own voxel in metres (None: the weights' voxel).
+    """
+
+    kind: str
+    weights: str | None = None
+    voxel: float | str = "auto"
+    reference_voxel: float | None = None
+
+
+@dataclass(frozen=True)
+class MatchingRecipe:
+    """Ratio-test matching.
+
+    Attributes:
+        max_points: seeded random subset of kept points per cloud that enters matching
+            (0 = all).
+        correspondences: the top-k Lowe-ratio matches kept per direction (2k in all; the
+            ratio is each match's weight, no threshold).
+    """
+
+    max_points: int
+    correspondences: int
+
+
+@dataclass(frozen=True)
+class FittingRecipe:
+    """The robust fit.
+
+    Attributes:
+        estimator: ``"ransac"`` or ``"procrustes"`` (randomized weighted Procrustes, the
+            paper's section 3.1).
+        inlier_factor: inlier threshold as a multiple of the voxel (RANSAC's threshold, and
+            that of the reported inliers and overlap).
+        ransac_iterations, ransac_confidence: RANSAC's limits.
+        num_subsets, subset_size: randomized Procrustes' candidates and their size.
+    """
+
+    estimator: str = "ransac"
+    inlier_factor: float = 2.0
+    ransac_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    num_subsets: int = 100
+    subset_size: int = 20
+
+
+@dataclass(frozen=True)
+class RefinementRecipe:
+    """The refinement after the robust fit.
+
+    Attributes:
+        method: ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`:
+            coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held)
+            or ``"none"``.
+    """
+
+    method: str
+
+
+@dataclass(frozen=True)
+class GateRecipe:
+    """The confidence gate.
+
+    Attributes:
+        min_confidence: a registration below this calibrated probability of being right is
+            flagged (``byoc register`` exits 3).
+        fallback: ``"fpfh"``: below the gate, register the pair again with FPFH features and
+            keep the more confident result (byoc features only); ``"none"``: never.
+    """
+
+    min_confidence: float = DEFAULT_MIN_CONFIDENCE
+    fallback: str = "none"
+
+
+@dataclass(frozen=True)
+class RegistrationRecipe:
+    """Every setting of one pairwise registration (module doc).
+
+    Attributes:
+        features, matching, fitting, refinement, gate: the stages' settings.
+        seed: seeds every random choice (subsets, sampling, RANSAC).
+    """
+
+    features: FeaturesRecipe
+    matching: MatchingRecipe
+    fitting: FittingRecipe
+    refinement: RefinementRecipe
+    gate: GateRecipe
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_recipe(self)
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-friendly tree (what the reports carry)."""
+        return dataclasses.asdict(self)
+
+    def changed(self, **paths: Any) -> RegistrationRecipe:
+        """A copy with fields changed, named ``"stage.field"`` with the dot written as
+        ``__`` (``changed(matching__max_points=3000, seed=1)``); None values are skipped."""
+        return with_values(self, {k.replace("__", "."): v for k, v in paths.items()})
+
+
+def with_values(recipe: RegistrationRecipe, values: Mapping[str, Any]) -> RegistrationRecipe:
+    """A copy of ``recipe`` with the fields named ``"stage.field"`` (or ``"seed"``) set to
+    the values of ``values`` (None: unchanged).
+
+    Raises:
+        RecipeError: a value out of its range.
+    """
+    stages: dict[str, dict[str, Any]] = {}
+    top: dict[str, Any] = {}
+    for path, value in values.items():
+        if value is None:
+            continue
+        stage, _, name = path.partition(".")
+        if name:
+            stages.setdefault(stage, {})[name] = value
+        else:
+            top[stage] = value
+    for stage, changes in stages.items():
+        top[stage] = dataclasses.replace(getattr(recipe, stage), **changes)
+    return dataclasses.replace(recipe, **top)
+
+
+#: the recipe of each feature type (``--features``)
+PRESETS: dict[str, RegistrationRecipe] = {
+    # learned features: RANSAC on the top 2500 ratio-test matches per direction, then
+    # coarse-to-fine point-to-plane ICP on the full clouds that holds sliding directions
+    # (benchmarks/estimators.py): randomized Procrustes registered a fifth of the development
+    # fragments that RANSAC did with the same features; plain ICP slid along the planes of
+    # tum_fr3_cabinet. Below the gate, FPFH gives a second opinion (docs/registering.md).
+    "byoc": RegistrationRecipe(
+        FeaturesRecipe("byoc"),
+        MatchingRecipe(max_points=5000, correspondences=2500),
+        FittingRecipe(),
+        RefinementRecipe("multiscale"),
+        GateRecipe(fallback="fpfh"),
+    ),
+    # Open3D's tutorial voxel for FPFH; RANSAC needs more than the top 200 of noisy FPFH
+    # matches; 10000 keeps every point of a 3DMatch fragment at 5 cm (median rotation error
+    # 2.9 deg against 4.8 deg with 5000) and bounds the matching cost of larger scans
+    "fpfh": RegistrationRecipe(
+        FeaturesRecipe("fpfh", reference_voxel=0.05),
+        MatchingRecipe(max_points=10000, correspondences=1000),
+        FittingRecipe(),
+        RefinementRecipe("none"),
+        GateRecipe(),
+    ),
+}
+#: the preset of the commands and the API when nothing names one
+DEFAULT_PRESET = "byoc"
+
+#: the paper's matching and fit (section 3.1: the top 200 ratio-test matches per direction,
+#: randomized Procrustes of 100 subsets of 20, no refinement), the settings of
+#: :class:`~byoc_cli.pipeline.register.RegisterConfig` when none are given
+PAPER = RegistrationRecipe(
+    FeaturesRecipe("byoc"),
+    MatchingRecipe(max_points=PRESETS["byoc"].matching.max_points, correspondences=200),
+    FittingRecipe(estimator="procrustes"),
+    RefinementRecipe("none"),
+    GateRecipe(),
+)
+
+
+def preset(kind: str | None = None) -> RegistrationRecipe:
+    """The recipe of feature type ``kind`` (None: :data:`DEFAULT_PRESET`).
+
+    Raises:
+        RecipeError: an unknown kind.
+    """
+    kind = DEFAULT_PRESET if kind is None else kind
+    if kind not in PRESETS:
+        raise RecipeError(f"unknown preset {kind!r} (known: {', '.join(PRESETS)})")
+    return PRESETS[kind]
+
+
+def preset_values(path: str) -> dict[str, Any]:
+    """``{kind: value}`` of one field (``"matching.max_points"``, ``"seed"``) per preset."""
+    out = {}
+    for kind, recipe in PRESETS.items():
+        value: Any = recipe
+        for name in path.split("."):
+            value = getattr(value, name)
+        out[kind] = value
+    return out
+
+
+def describe_default(path: str, show=str) -> str:
+    """The presets' value of a field as help text: ``"5000 with byoc features, 10000 with
+    fpfh"``, or one value when the presets agree (``show`` formats a value)."""
+    values = preset_values(path)
+    shown = {kind: show(value) for kind, value in values.items()}
+    if len(set(shown.values())) == 1:
+        return next(iter(shown.values()))
+    kinds = list(shown)
+    first = f"{shown[kinds[0]]} with {kinds[0]} features"
+    return ", ".join([first, *(f"{shown[k]} with {k}" for k in kinds[1:])])
+
+
+# ------------------------------------------------------------------ checks
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_recipe(recipe: RegistrationRecipe) -> None:
+    """Raise :class:`RecipeError` naming the first field out of its range."""
+    f, m, fit, r, g = (
+        recipe.features,
+        recipe.matching,
+        recipe.fitting,
+        recipe.refinement,
+        recipe.gate,
+    )
+    checks = [
+        ("features.kind", f.kind in FEATURE_KINDS, f"one of {', '.join(FEATURE_KINDS)}"),
+        ("features.weights", f.weights is None or isinstance(f.weights, str), "a file name"),
+        (
+            "features.voxel",
+            f.voxel in ("auto", "own") or (_is_number(f.voxel) and f.voxel > 0),
+            '"auto", "own" or a positive number',
+        ),
+        (
+            "features.reference_voxel",
+            f.reference_voxel is None or (_is_number(f.reference_voxel) and f.reference_voxel > 0),
+            "a positive number",
+        ),
+        ("matching.max_points", _is_int(m.max_points) and m.max_points >= 0, "an integer >= 0"),
+        (
+            "matching.correspondences",
+            _is_int(m.correspondences) and m.correspondences >= 3,
+            "an integer >= 3",
+        ),
+        ("fitting.estimator", fit.estimator in ESTIMATORS, f"one of {', '.join(ESTIMATORS)}"),
+        (
+            "fitting.inlier_factor",
+            _is_number(fit.inlier_factor) and fit.inlier_factor > 0,
+            "a positive number",
+        ),
+        (
+            "fitting.ransac_iterations",
+            _is_int(fit.ransac_iterations) and fit.ransac_iterations >= 1,
+            "an integer >= 1",
+        ),
+        (
+            "fitting.ransac_confidence",
+            _is_number(fit.ransac_confidence) and 0 < fit.ransac_confidence <= 1,
+            "a number in (0, 1]",
+        ),
+        ("fitting.num_subsets", _is_int(fit.num_subsets) and fit.num_subsets >= 1, "an int >= 1"),
+        ("fitting.subset_size", _is_int(fit.subset_size) and fit.subset_size >= 3, "an int >= 3"),
+        ("refinement.method", r.method in REFINEMENTS, f"one of {', '.join(REFINEMENTS)}"),
+        (
+            "gate.min_confidence",
+            _is_number(g.min_confidence) and 0 <= g.min_confidence <= 1,
+            "a number in [0, 1]",
+        ),
+        ("gate.fallback", g.fallback in FALLBACKS, f"one of {', '.join(FALLBACKS)}"),
+        ("seed", _is_int(recipe.seed) and 0 <= recipe.seed < 2**64, "an integer in [0, 2**64)"),
+    ]
+    for name, ok, expected in checks:
+        if not ok:
+            raise RecipeError(f"{name} must be {expected}")
+
+
+# ------------------------------------------------------------------ TOML
+
+_STAGES = {
+    "features": FeaturesRecipe,
+    "matching": MatchingRecipe,
+    "fitting": FittingRecipe,
+    "refinement": RefinementRecipe,
+    "gate": GateRecipe,
+}
+
+
+def recipe_from_dict(data: Mapping[str, Any]) -> RegistrationRecipe:
+    """The recipe of a TOML-like tree: ``preset`` (default :data:`DEFAULT_PRESET`, or the
+    ``features.kind`` given) changed by the tables' fields.
+
+    Raises:
+        RecipeError: an unknown table or field, or a value out of its range.
+    """
+    known = {"preset", "seed", *_STAGES}
+    for key in data:
+        if key not in known:
+            raise RecipeError(f"unknown key {key!r} (known: {', '.join(sorted(known))})")
+    features = data.get("features", {})
+    kind = data.get("preset", features.get("kind") if isinstance(features, Mapping) else None)
+    base = preset(kind)
+    values: dict[str, Any] = {"seed": data.get("seed")}
+    for stage, kind_of in _STAGES.items():
+        table = data.get(stage, {})
+        if not isinstance(table, Mapping):
+            raise RecipeError(f"[{stage}] must be a table")
+        names = [f.name for f in fields(kind_of)]
+        for name, value in table.items():
+            if name not in names:
+                raise RecipeError(f"unknown field {stage}.{name} (known: {', '.join(names)})")
+            if stage == "refinement" and name == "method" and value == "icp":
+                warnings.warn(
+                    "refinement method 'icp' is deprecated: the multiscale refinement runs",
+                    DeprecationWarning,
+                    stacklevel=2,
+                )
+                value = "multiscale"
+            values[f"{stage}.{name}"] = value
+    try:
+        return with_values(base, values)
+    except TypeError as exc:  # a value of the wrong kind that a comparison refused
+        raise RecipeError(str(exc)) from None
+
+
+def load_recipe(path: str | os.PathLike[str]) -> RegistrationRecipe:
+    """Read a recipe from a TOML file (module doc).
+
+    Raises:
+        InputError: the file cannot be read, is not TOML, or holds an unusable recipe (the
+            message names the file and the problem).
+    """
+    import tomllib
+
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import read_input
+
+    try:
+        data = tomllib.loads(read_input(path, "config").decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(path, f"is not a TOML recipe ({exc})") from None
+    try:
+        return recipe_from_dict(data)
+    except RecipeError as exc:
+        raise InputError(path, f"recipe: {exc}") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return f'"{escaped}"'
+    return repr(value)
+
+
+def recipe_to_toml(recipe: RegistrationRecipe | Mapping[str, Any]) -> str:
+    """The TOML text of a recipe (or of its :meth:`~RegistrationRecipe.as_dict`); None
+    values (the shipped weights, the weights' voxel) are left out: reading it back gives the
+    same recipe (:func:`load_recipe`)."""
+    tree = recipe.as_dict() if isinstance(recipe, RegistrationRecipe) else dict(recipe)
+    lines = [f"seed = {_toml_value(tree['seed'])}"]
+    for stage in _STAGES:
+        lines += ["", f"[{stage}]"]
+        lines += [
+            f"{name} = {_toml_value(value)}"
+            for name, value in tree[stage].items()
+            if value is not None
+        ]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,133 @@
+"""The registration recipe: presets, checks, TOML in and out, its RegisterConfig."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from byoc_cli.errors import InputError
+from byoc_cli.pipeline.recipe import (
+    PAPER,
+    PRESETS,
+    RecipeError,
+    describe_default,
+    load_recipe,
+    preset,
+    preset_values,
+    recipe_from_dict,
+    recipe_to_toml,
+)
+from byoc_cli.pipeline.register import RegisterConfig, register_config
+
+
+@pytest.mark.parametrize("kind", sorted(PRESETS))
+def test_a_preset_survives_toml(kind, tmp_path):
+    path = tmp_path / "r.toml"
+    path.write_text(recipe_to_toml(PRESETS[kind]))
+    assert load_recipe(path) == PRESETS[kind]
+    assert load_recipe(path).features.kind == kind
+
+
+def test_a_changed_recipe_survives_toml_and_its_report_form(tmp_path):
+    recipe = PRESETS["byoc"].changed(
+        matching__max_points=3000, fitting__estimator="procrustes", seed=7
+    )
+    recipe = recipe.changed(features__weights="w.safetensors", features__voxel=0.03)
+    path = tmp_path / "r.toml"
+    path.write_text(recipe_to_toml(recipe.as_dict()))  # what a report carries
+    assert load_recipe(path) == recipe
+
+
+def test_a_file_names_the_preset_and_changes_some_fields(tmp_path):
+    path = tmp_path / "r.toml"
+    path.write_text('preset = "fpfh"\n[matching]\nmax_points = 123\n')
+    got = load_recipe(path)
+    assert got.features.kind == "fpfh" and got.matching.max_points == 123
+    assert got.fitting == PRESETS["fpfh"].fitting
+    assert got.matching.correspondences == PRESETS["fpfh"].matching.correspondences
+    path.write_text("")
+    assert load_recipe(path) == preset()
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("[matching]\nmax_points = -1\n", "matching.max_points"),
+        ("[matching]\nmax_pts = 1\n", "unknown field matching.max_pts"),
+        ("[nope]\n", "unknown key 'nope'"),
+        ('preset = "sift"\n', "unknown preset 'sift'"),
+        ('[fitting]\nestimator = "lmeds"\n', "fitting.estimator"),
+        ("[gate]\nmin_confidence = 1.5\n", "gate.min_confidence"),
+        ('[features]\nvoxel = "big"\n', "features.voxel"),
+        ("[matching\n", "is not a TOML recipe"),
+        ("matching = 3\n", "[matching] must be a table"),
+        ("seed = -1\n", "seed"),
+    ],
+)
+def test_a_bad_recipe_file_is_an_input_error_naming_it(tmp_path, text, problem):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(InputError) as caught:
+        load_recipe(path)
+    assert str(caught.value).startswith(f"{path}: ") and problem in str(caught.value)
+    assert "\n" not in str(caught.value)
+
+
+def test_a_missing_recipe_file_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match=r"none\.toml"):
+        load_recipe(tmp_path / "none.toml")
+
+
+def test_refinement_icp_is_read_as_multiscale_with_a_warning():
+    with pytest.warns(DeprecationWarning, match="icp"):
+        got = recipe_from_dict({"refinement": {"method": "icp"}})
+    assert got.refinement.method == "multiscale"
+
+
+def test_values_out_of_range_are_refused_in_code_too():
+    with pytest.raises(RecipeError, match=r"matching\.correspondences"):
+        PRESETS["byoc"].changed(matching__correspondences=2)
+    with pytest.raises(RecipeError, match=r"refinement\.method"):
+        PRESETS["byoc"].changed(refinement__method="icp")
+    with pytest.raises(RecipeError, match="unknown preset"):
+        preset("sift")
+
+
+@pytest.mark.parametrize("kind", sorted(PRESETS))
+def test_register_config_carries_every_setting_of_the_recipe(kind):
+    recipe = PRESETS[kind].changed(seed=5)
+    config = register_config(recipe)
+    fit = recipe.fitting
+    assert (config.num_correspondences, config.max_points) == (
+        recipe.matching.correspondences,
+        recipe.matching.max_points,
+    )
+    assert (config.estimator, config.num_subsets, config.subset_size) == (
+        fit.estimator,
+        fit.num_subsets,
+        fit.subset_size,
+    )
+    assert (config.inlier_factor, config.ransac_iterations, config.ransac_confidence) == (
+        fit.inlier_factor,
+        fit.ransac_iterations,
+        fit.ransac_confidence,
+    )
+    method = recipe.refinement.method
+    assert config.refine == (None if method == "none" else method)
+    assert register_config(recipe, refine=False).refine is None
+    assert (config.seed, config.confidence_model) == (5, kind)
+
+
+def test_register_config_defaults_are_the_papers():
+    assert RegisterConfig() == dataclasses.replace(register_config(PAPER), confidence_model="byoc")
+
+
+def test_help_text_of_a_default_names_each_preset_when_they_differ():
+    values = preset_values("matching.max_points")
+    assert set(values) == set(PRESETS)
+    text = describe_default("matching.max_points")
+    for kind, value in values.items():
+        assert f"{value} with {kind}" in text
+    same = preset_values("fitting.ransac_iterations")
+    assert describe_default("fitting.ransac_iterations") == str(same["byoc"])
