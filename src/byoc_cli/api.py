@@ -92,7 +92,7 @@ def _registrar_recipe(
     if recipe is None:
         recipe = preset(features)
     elif features is not None and features != recipe.features.kind:
-        recipe = recipe.changed(features__kind=features)
+        recipe = recipe.with_kind(features)
     if fallback == "auto":
         fallback = recipe.gate.fallback if recipe.features.kind == "byoc" else "none"
     if fallback not in (None, "none", "fpfh") or (
@@ -374,7 +374,7 @@ class Registrar:
             src, tgt: :meth:`extract` results (same features, voxel size and scale).
             estimator: ``"ransac"`` or ``"procrustes"``.
             refine: ``"none"`` or ``"multiscale"`` (runs on ``Features.cloud`` where both have
-                one); ``"icp"`` is read as ``"multiscale"`` (deprecated, with a warning).
+                one); ``"icp"`` is deprecated (a warning says so).
             max_points: seeded random subset per cloud that enters matching (0 = all).
             num_correspondences: top-k ratio-test matches kept per direction.
             seed: seeds every random choice.
@@ -463,12 +463,9 @@ class Registrar:
             ValueError: a value out of its range (:class:`~byoc_cli.pipeline.recipe.RecipeError`).
         """
         if refine == "icp":
-            warnings.warn(
-                "--refine icp is deprecated: the multiscale refinement runs",
-                DeprecationWarning,
-                stacklevel=3,
-            )
-            refine = "multiscale"
+            from byoc_cli.pipeline.recipe import DEPRECATED_ICP
+
+            warnings.warn(DEPRECATED_ICP, DeprecationWarning, stacklevel=3)
         return self.recipe.changed(
             fitting__estimator=estimator,
             refinement__method=refine,
@@ -550,7 +547,7 @@ class Registrar:
         start = time.perf_counter()
         load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
         refine = settings.get("refine") or self.recipe.refinement.method
-        multiscale = refine in ("multiscale", "icp")  # (icp: read as multiscale by match)
+        multiscale = refine == "multiscale"
         pool = _InPlace() if in_worker() else self.executor()
         labels = ((source, "source"), (target, "target"))
         read = [pool.submit(self._loaded, cloud, label, scale, load) for cloud, label in labels]

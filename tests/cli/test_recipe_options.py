@@ -200,5 +200,5 @@ def test_options_given_change_the_recipe_file(tmp_path):
     assert options == {"other": 1}  # the recipe options are taken out
     assert (got.features.kind, got.matching.max_points, got.seed) == ("fpfh", 123, 9)
     assert got.fitting.estimator == PRESETS["fpfh"].fitting.estimator
-    assert got.refinement.method == "multiscale"  # --refine icp: deprecated, runs multiscale
+    assert got.refinement.method == "icp"  # deprecated (a warning), still Open3D's ICP
     assert got.gate.fallback == "none"  # the fallback is for learned features

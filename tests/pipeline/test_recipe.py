@@ -79,17 +79,17 @@ def test_a_missing_recipe_file_is_an_input_error(tmp_path):
         load_recipe(tmp_path / "none.toml")
 
 
-def test_refinement_icp_is_read_as_multiscale_with_a_warning():
-    with pytest.warns(DeprecationWarning, match="icp"):
+def test_refinement_icp_is_deprecated_with_a_warning():
+    with pytest.warns(DeprecationWarning, match="deprecated"):
         got = recipe_from_dict({"refinement": {"method": "icp"}})
-    assert got.refinement.method == "multiscale"
+    assert got.refinement.method == "icp"
 
 
 def test_values_out_of_range_are_refused_in_code_too():
     with pytest.raises(RecipeError, match=r"matching\.correspondences"):
         PRESETS["byoc"].changed(matching__correspondences=2)
     with pytest.raises(RecipeError, match=r"refinement\.method"):
-        PRESETS["byoc"].changed(refinement__method="icp")
+        PRESETS["byoc"].changed(refinement__method="plain")
     with pytest.raises(RecipeError, match="unknown preset"):
         preset("sift")
 

@@ -81,8 +81,8 @@ def _options() -> dict[str, Callable]:
             type=click.Choice(["auto", "none", "icp", "multiscale"]),
             default=None,
             help="multiscale: coarse-to-fine point-to-plane ICP on the full clouds that holds "
-            "directions the geometry leaves free; icp: deprecated, runs multiscale; auto: "
-            f"the recipe's. {_default('refinement.method')}",
+            "directions the geometry leaves free; icp: deprecated (Open3D's single-scale ICP "
+            f"on the kept points); auto: the recipe's. {_default('refinement.method')}",
         ),
         "max_points": int_option(
             "--max-points",
@@ -175,7 +175,7 @@ def build_recipe(options: dict[str, Any]) -> recipes.RegistrationRecipe:
 
     ``recipe_path`` (``--recipe``) or the preset of ``features`` is the base; every other
     option given (not None, not ``auto`` for ``--estimator`` and ``--refine``) changes it.
-    ``--refine icp`` runs the multiscale refinement (a warning says so).
+    ``--refine icp`` is deprecated (a warning says so).
 
     Raises:
         InputError: the ``--recipe`` file cannot be read or holds an unusable recipe.
@@ -189,14 +189,14 @@ def build_recipe(options: dict[str, Any]) -> recipes.RegistrationRecipe:
         base = recipes.load_recipe(path)
     else:
         base = recipes.preset(given.get("features"))
+    if given.get("features") is not None and given["features"] != base.features.kind:
+        base = base.with_kind(given["features"])
     for name in ("estimator", "refine"):
         if given.get(name) == "auto":
             given[name] = None
     if given.get("refine") == "icp":
-        logging.getLogger("byoc").warning(
-            "--refine icp is deprecated: the multiscale refinement runs (docs/registering.md)"
-        )
-        given["refine"] = "multiscale"
+        logging.getLogger("byoc").warning("--refine icp: %s", recipes.DEPRECATED_ICP)
+    given.pop("features", None)
     if given.get("weights") is not None:
         given["weights"] = str(given["weights"])
     changes = {FIELDS[name]: value for name, value in given.items()}

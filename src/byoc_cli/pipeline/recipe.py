@@ -36,10 +36,18 @@ from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 FEATURE_KINDS = ("byoc", "fpfh")
 #: robust estimators
 ESTIMATORS = ("procrustes", "ransac")
-#: refinements after the robust fit (``"icp"`` is read as ``"multiscale"``, with a warning)
-REFINEMENTS = ("none", "multiscale")
+#: refinements after the robust fit (``"icp"``, Open3D's single-scale ICP on the kept points,
+#: is deprecated: a recipe file that names it gets a warning)
+REFINEMENTS = ("none", "multiscale", "icp")
 #: what runs below the gate
 FALLBACKS = ("none", "fpfh")
+
+
+#: what a recipe, an option or the API says of the deprecated refinement
+DEPRECATED_ICP = (
+    "refinement 'icp' (Open3D's single-scale ICP on the kept points) is deprecated and will be "
+    "removed: 'multiscale' refines better and needs no open3d (docs/registering.md)"
+)
 
 
 class RecipeError(ValueError):
@@ -107,8 +115,8 @@ class RefinementRecipe:
 
     Attributes:
         method: ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`:
-            coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held)
-            or ``"none"``.
+            coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held),
+            ``"none"``, or the deprecated ``"icp"`` (Open3D's ICP on the kept points).
     """
 
     method: str
@@ -151,6 +159,13 @@ class RegistrationRecipe:
     def as_dict(self) -> dict[str, Any]:
         """A JSON-friendly tree (what the reports carry)."""
         return dataclasses.asdict(self)
+
+    def with_kind(self, kind: str) -> RegistrationRecipe:
+        """A copy with features of ``kind`` (their own voxel: that preset's), every other
+        setting kept."""
+        own = preset(kind).features.reference_voxel
+        features = dataclasses.replace(self.features, kind=kind, reference_voxel=own)
+        return dataclasses.replace(self, features=features)
 
     def changed(self, **paths: Any) -> RegistrationRecipe:
         """A copy with fields changed, named ``"stage.field"`` with the dot written as
@@ -361,12 +376,7 @@ def recipe_from_dict(data: Mapping[str, Any]) -> RegistrationRecipe:
             if name not in names:
                 raise RecipeError(f"unknown field {stage}.{name} (known: {', '.join(names)})")
             if stage == "refinement" and name == "method" and value == "icp":
-                warnings.warn(
-                    "refinement method 'icp' is deprecated: the multiscale refinement runs",
-                    DeprecationWarning,
-                    stacklevel=2,
-                )
-                value = "multiscale"
+                warnings.warn(DEPRECATED_ICP, DeprecationWarning, stacklevel=2)
             values[f"{stage}.{name}"] = value
     try:
         return with_values(base, values)
