@@ -195,6 +195,79 @@ def with_values(recipe: RegistrationRecipe, values: Mapping[str, Any]) -> Regist
     return dataclasses.replace(recipe, **top)
 
 
+# ------------------------------------------------------------------ checks
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_recipe(recipe: RegistrationRecipe) -> None:
+    """Raise :class:`RecipeError` naming the first field out of its range."""
+    f, m, fit, r, g = (
+        recipe.features,
+        recipe.matching,
+        recipe.fitting,
+        recipe.refinement,
+        recipe.gate,
+    )
+    checks = [
+        ("features.kind", f.kind in FEATURE_KINDS, f"one of {', '.join(FEATURE_KINDS)}"),
+        ("features.weights", f.weights is None or isinstance(f.weights, str), "a file name"),
+        (
+            "features.voxel",
+            f.voxel in ("auto", "own") or (_is_number(f.voxel) and f.voxel > 0),
+            '"auto", "own" or a positive number',
+        ),
+        (
+            "features.reference_voxel",
+            f.reference_voxel is None or (_is_number(f.reference_voxel) and f.reference_voxel > 0),
+            "a positive number",
+        ),
+        ("matching.max_points", _is_int(m.max_points) and m.max_points >= 0, "an integer >= 0"),
+        (
+            "matching.correspondences",
+            _is_int(m.correspondences) and m.correspondences >= 3,
+            "an integer >= 3",
+        ),
+        ("fitting.estimator", fit.estimator in ESTIMATORS, f"one of {', '.join(ESTIMATORS)}"),
+        (
+            "fitting.inlier_factor",
+            _is_number(fit.inlier_factor) and fit.inlier_factor > 0,
+            "a positive number",
+        ),
+        (
+            "fitting.ransac_iterations",
+            _is_int(fit.ransac_iterations) and fit.ransac_iterations >= 1,
+            "an integer >= 1",
+        ),
+        (
+            "fitting.ransac_confidence",
+            _is_number(fit.ransac_confidence) and 0 < fit.ransac_confidence <= 1,
+            "a number in (0, 1]",
+        ),
+        ("fitting.num_subsets", _is_int(fit.num_subsets) and fit.num_subsets >= 1, "an int >= 1"),
+        ("fitting.subset_size", _is_int(fit.subset_size) and fit.subset_size >= 3, "an int >= 3"),
+        ("refinement.method", r.method in REFINEMENTS, f"one of {', '.join(REFINEMENTS)}"),
+        (
+            "gate.min_confidence",
+            _is_number(g.min_confidence) and 0 <= g.min_confidence <= 1,
+            "a number in [0, 1]",
+        ),
+        ("gate.fallback", g.fallback in FALLBACKS, f"one of {', '.join(FALLBACKS)}"),
+        ("seed", _is_int(recipe.seed) and 0 <= recipe.seed < 2**64, "an integer in [0, 2**64)"),
+    ]
+    for name, ok, expected in checks:
+        if not ok:
+            raise RecipeError(f"{name} must be {expected}")
+
+
+# ------------------------------------------------------------------ presets
+
 #: the recipe of each feature type (``--features``)
 PRESETS: dict[str, RegistrationRecipe] = {
     # learned features: RANSAC on the top 2500 ratio-test matches per direction, then
@@ -268,77 +341,6 @@ def describe_default(path: str, show=str) -> str:
     kinds = list(shown)
     first = f"{shown[kinds[0]]} with {kinds[0]} features"
     return ", ".join([first, *(f"{shown[k]} with {k}" for k in kinds[1:])])
-
-
-# ------------------------------------------------------------------ checks
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def check_recipe(recipe: RegistrationRecipe) -> None:
-    """Raise :class:`RecipeError` naming the first field out of its range."""
-    f, m, fit, r, g = (
-        recipe.features,
-        recipe.matching,
-        recipe.fitting,
-        recipe.refinement,
-        recipe.gate,
-    )
-    checks = [
-        ("features.kind", f.kind in FEATURE_KINDS, f"one of {', '.join(FEATURE_KINDS)}"),
-        ("features.weights", f.weights is None or isinstance(f.weights, str), "a file name"),
-        (
-            "features.voxel",
-            f.voxel in ("auto", "own") or (_is_number(f.voxel) and f.voxel > 0),
-            '"auto", "own" or a positive number',
-        ),
-        (
-            "features.reference_voxel",
-            f.reference_voxel is None or (_is_number(f.reference_voxel) and f.reference_voxel > 0),
-            "a positive number",
-        ),
-        ("matching.max_points", _is_int(m.max_points) and m.max_points >= 0, "an integer >= 0"),
-        (
-            "matching.correspondences",
-            _is_int(m.correspondences) and m.correspondences >= 3,
-            "an integer >= 3",
-        ),
-        ("fitting.estimator", fit.estimator in ESTIMATORS, f"one of {', '.join(ESTIMATORS)}"),
-        (
-            "fitting.inlier_factor",
-            _is_number(fit.inlier_factor) and fit.inlier_factor > 0,
-            "a positive number",
-        ),
-        (
-            "fitting.ransac_iterations",
-            _is_int(fit.ransac_iterations) and fit.ransac_iterations >= 1,
-            "an integer >= 1",
-        ),
-        (
-            "fitting.ransac_confidence",
-            _is_number(fit.ransac_confidence) and 0 < fit.ransac_confidence <= 1,
-            "a number in (0, 1]",
-        ),
-        ("fitting.num_subsets", _is_int(fit.num_subsets) and fit.num_subsets >= 1, "an int >= 1"),
-        ("fitting.subset_size", _is_int(fit.subset_size) and fit.subset_size >= 3, "an int >= 3"),
-        ("refinement.method", r.method in REFINEMENTS, f"one of {', '.join(REFINEMENTS)}"),
-        (
-            "gate.min_confidence",
-            _is_number(g.min_confidence) and 0 <= g.min_confidence <= 1,
-            "a number in [0, 1]",
-        ),
-        ("gate.fallback", g.fallback in FALLBACKS, f"one of {', '.join(FALLBACKS)}"),
-        ("seed", _is_int(recipe.seed) and 0 <= recipe.seed < 2**64, "an integer in [0, 2**64)"),
-    ]
-    for name, ok, expected in checks:
-        if not ok:
-            raise RecipeError(f"{name} must be {expected}")
 
 
 # ------------------------------------------------------------------ TOML
