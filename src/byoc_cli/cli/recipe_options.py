@@ -126,10 +126,8 @@ def _options() -> dict[str, Callable]:
 
 def _voxel_own() -> str:
     own = recipes.preset_values("features.reference_voxel")
-    return ", ".join(
-        f"{'the weights' if value is None else f'{value:g} m'} for {kind}"
-        for kind, value in own.items()
-    )
+    shown = {k: "the weights' voxel" if v is None else f"{v:g} m" for k, v in own.items()}
+    return ", ".join(f"{text} for {kind}" for kind, text in shown.items())
 
 
 #: the option names of :func:`build_recipe` and the recipe field each one changes
