@@ -142,3 +142,29 @@ def test_searches_side_by_side_give_the_same_bytes(generator, monkeypatch):
     assert torch.equal(split.T_tgt_src, alone.T_tgt_src)
     assert (split.rank, split.fitness, split.rmse) == (alone.rank, alone.fitness, alone.rmse)
     assert split.conditioning == alone.conditioning
+
+
+def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(generator):
+    o3d = pytest.importorskip("open3d")
+    import numpy as np
+
+    T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
+    src, tgt = _room_pair(30000, T_true, generator)
+    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    assert refine_module.icp_voxel(a) == pytest.approx(0.02)
+    assert refine_module.enough_points(a) and refine_module.enough_points(b)
+    fit = refine_module.refine_pair(a, b, np.eye(4))
+    rot, trans = _pose_error(torch.from_numpy(fit.T_tgt_src), T_true)
+    assert rot < 0.5 and trans < 0.005
+    assert fit.fitness > 0.9 and 0 < fit.rmse < 0.02  # metres
+    # the information matrix Open3D's pose graph reads, computed on the same finest points
+    level = len(a.levels) - 1
+    pcd_a = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a.source(level).numpy()))
+    pcd_b = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b.target(level)[0].numpy()))
+    distance = refine_module.FINE_DISTANCE * 0.02
+    theirs = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        pcd_a, pcd_b, distance, fit.T_tgt_src
+    )
+    assert np.allclose(fit.information, np.asarray(theirs), rtol=0.05, atol=1e-6 * theirs.max())
+    # a cloud without points at a level is not enough for a pair
+    assert not refine_module.enough_points(refine_module.pair_cloud(src[:5], 0.02))
