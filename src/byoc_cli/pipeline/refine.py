@@ -342,7 +342,8 @@ def information_matrix(
     moved = p @ T[:3, :3].T + T[:3, 3]
     if len(moved) == 0 or len(q) == 0:
         return np.zeros((6, 6))
-    near = nearest_of(index, moved, nearest_candidates(index, moved, CANDIDATES, 1))
+    reach = math.ceil(distance / index.size)  # every target point within the distance
+    near = nearest_of(index, moved, nearest_candidates(index, moved, 1, reach))
     ok = (near.index >= 0) & (near.distance2 <= distance**2)
     t = q[near.index[ok]].to(torch.float64)  # (K, 3)
     x, y, z = t.unbind(1)
