@@ -73,6 +73,8 @@ class RegisterConfig:
             ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to
             fine on the full-resolution clouds, degenerate directions held).
         icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
+        mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
+            (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
     """
 
@@ -86,6 +88,7 @@ class RegisterConfig:
     ransac_confidence: float = 0.999
     refine: str | None = None
     icp_factor: float = 2.0
+    mutual: bool = False
     seed: int = 0
     chunk_size: int | None = None
 
@@ -182,7 +185,11 @@ def estimate_transform(
         tgt, sample_subset(len(tgt.points), config.max_points, generator)
     )
     corr = ratio_test_correspondences(
-        feats_src, feats_tgt, k=config.num_correspondences, chunk_size=config.chunk_size
+        feats_src,
+        feats_tgt,
+        k=config.num_correspondences,
+        chunk_size=config.chunk_size,
+        mutual=config.mutual,
     )
     if corr.src_idx.numel() < 3:
         raise RegistrationError(f"only {corr.src_idx.numel()} correspondences (need 3)")
