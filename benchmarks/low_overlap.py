@@ -1,0 +1,156 @@
+"""Low-overlap levers that need no training, on the development fragments and the 3DMatch sample.
+
+Usage::
+
+    python benchmarks/low_overlap.py --fragments DEV --out eval/ [--cache-dir features/]
+        [--levers shipped fpfh mutual ...] [--table-only]
+
+``DEV`` is a fragment benchmark whose gt.log holds every pair above 10 % overlap with its
+``gt_overlap.log`` (``byoc make-fragments ... --min-overlap 0.1``, one folder per scene; several
+benchmarks can be joined by linking their scene folders into one). Every lever is the shipped
+weights with ``byoc register``'s defaults for learned features and ONE setting changed (the
+``fpfh`` row is ``--method fpfh-ransac``, the ``byoc register --features fpfh`` pipeline), run
+through ``byoc eval-fmr``'s evaluation (the same seeded 5000 points per fragment, the same
+protocols) on:
+
+* the development fragments, split by overlap into 10-30 % (3DLoMatch's band) and above 30 %
+  (3DMatch's), as ``byoc eval-fmr DEV --overlap-bands 0.1,0.3,1``;
+* the 3DMatch sample (3 pairs above 30 %) and the 3DLoMatch sample (5 pairs, 10-30 %), with the
+  official ground truth of ``../shared/data/3dmatch/benchmarks``.
+
+One JSON per lever and pair set goes to ``--out`` (the ``eval-fmr --json`` report); a JSON
+already there is reused, so an interrupted sweep resumes. Printed: a Markdown table, one row per
+lever: official registration recall (RMSE <= 0.2 m, pairs ``j - i > 1``) and success rate
+(rotation < 15 deg, translation < 30 cm) per set, and seconds per pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+SAMPLE = DATA / "3dmatch" / "sample"
+GT = DATA / "3dmatch" / "benchmarks"
+
+#: lever name -> (method, RegisterConfig fields changed from the byoc defaults)
+LEVERS: dict[str, tuple[str, dict]] = {
+    "shipped": ("byoc", {}),
+    "fpfh": ("fpfh-ransac", {}),
+    "mutual": ("byoc", {"mutual": True}),
+    "top-1000": ("byoc", {"num_correspondences": 1000}),
+    "top-5000": ("byoc", {"num_correspondences": 5000}),
+    "ransac-1M": ("byoc", {"ransac_iterations": 1_000_000}),
+    "inlier-1.5v": ("byoc", {"inlier_factor": 1.5}),
+    "inlier-3v": ("byoc", {"inlier_factor": 3.0}),
+    "points-10k": ("byoc", {"max_points": 10_000}),
+    "points-20k": ("byoc", {"max_points": 20_000}),
+    "mutual+ransac-1M": ("byoc", {"mutual": True, "ransac_iterations": 1_000_000}),
+    "points-10k+ransac-1M": ("byoc", {"max_points": 10_000, "ransac_iterations": 1_000_000}),
+}
+BANDS = "0.1,0.3,1"
+
+
+def _sets(fragments: Path) -> list[tuple[str, Path, Path | None, str | None]]:
+    """``(name, root, gt_dir, bands)`` of every pair set."""
+    return [
+        ("dev", fragments, None, BANDS),
+        ("3DMatch sample", SAMPLE / "3DMatch", GT / "3DMatch", None),
+        ("3DLoMatch sample", SAMPLE / "3DLoMatch", GT / "3DLoMatch", None),
+    ]
+
+
+def _slug(text: str) -> str:
+    return text.replace(" ", "_").replace("+", "_")
+
+
+def _evaluate(lever: str, root: Path, gt_dir: Path | None, bands: str | None, cache: Path | None):
+    """The eval-fmr report of one lever on one pair set."""
+    from byoc_cli.evaluation.bands import parse_overlap_bands, split_by_band
+    from byoc_cli.evaluation.cache import FeatureCache
+    from byoc_cli.evaluation.fmr import FmrConfig, evaluate_fmr, load_benchmark_pairs
+    from byoc_cli.evaluation.methods import build_methods
+    from byoc_cli.evaluation.report import fmr_report
+    from byoc_cli.io.threedmatch import discover_benchmark
+    from byoc_cli.pipeline.default_weights import default_weights_path
+
+    method, changes = LEVERS[lever]
+    weights = [default_weights_path()] if method == "byoc" else []
+    methods = build_methods([method], weights, max_points=5000)
+    methods[0].config = dataclasses.replace(methods[0].config, **changes)
+    methods[0].name = lever
+    pair_set = load_benchmark_pairs(discover_benchmark(root, gt_dir))
+    band_list = parse_overlap_bands(bands) if bands else []
+    outside = 0
+    if band_list:
+        members, rest = split_by_band([p.overlap for p in pair_set.pairs], band_list)
+        keep = sorted(k for m in members for k in m)
+        pair_set = pair_set._replace(pairs=[pair_set.pairs[k] for k in keep])
+        outside = len(rest)
+    config = FmrConfig()
+    result = evaluate_fmr(pair_set, methods, config, FeatureCache(cache))
+    settings = {"root": str(root), "gt_dir": str(gt_dir) if gt_dir else None, "lever": lever}
+    settings["changes"] = changes
+    return fmr_report(result, pair_set, methods, config, settings, band_list, outside)
+
+
+def _cell(summary: dict) -> str:
+    rr = summary.get("registration_recall")
+    succ = summary.get("success_rate")
+    rr_text = "-" if not rr else f"{100 * rr['pooled']:.1f} ({rr['num_pairs']})"
+    succ_text = "-" if not succ else f"{100 * succ['pooled']:.1f}"
+    return f"{rr_text} / {succ_text}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--fragments", type=Path, required=True)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cache-dir", type=Path, default=None)
+    parser.add_argument("--levers", nargs="+", default=list(LEVERS))
+    parser.add_argument("--table-only", action="store_true")
+    args = parser.parse_args()
+    unknown = [lever for lever in args.levers if lever not in LEVERS]
+    if unknown:
+        parser.error(f"unknown lever {unknown[0]!r} (known: {', '.join(LEVERS)})")
+    if not args.fragments.is_dir():
+        parser.error(f"--fragments {args.fragments}: no such folder")
+    args.out.mkdir(parents=True, exist_ok=True)
+    header = [
+        "lever",
+        "dev 10-30 %",
+        "dev > 30 %",
+        "3DLoMatch sample",
+        "3DMatch sample",
+        "s / pair (dev)",
+    ]
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for lever in args.levers:
+        reports = {}
+        for name, root, gt_dir, bands in _sets(args.fragments):
+            out = args.out / f"{_slug(lever)}-{_slug(name)}.json"
+            if not out.exists():
+                if args.table_only:
+                    continue
+                print(f"running {lever} on {name}", file=sys.stderr, flush=True)
+                report = _evaluate(lever, root, gt_dir, bands, args.cache_dir)
+                out.write_text(json.dumps(report, indent=1) + "\n")
+            reports[name] = json.loads(out.read_text())
+        cells = []
+        dev = reports.get("dev")
+        for band in (0, 1):
+            cells.append(_cell(dev["bands"][band]["results"][lever]) if dev else "-")
+        for name in ("3DLoMatch sample", "3DMatch sample"):
+            cells.append(_cell(reports[name]["results"][lever]) if name in reports else "-")
+        cells.append(f"{dev['results'][lever]['seconds_per_pair']:.2f}" if dev else "-")
+        print(f"| {lever} | " + " | ".join(cells) + " |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
