@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/low_overlap.py --fragments DEV --out eval/ [--cache-dir features/]
-        [--levers shipped fpfh mutual ...] [--table-only]
+        [--levers shipped fpfh mutual ...] [--sets dev-low dev-high ...] [--table-only]
 
 ``DEV`` is a fragment benchmark whose gt.log holds every pair above 10 % overlap with its
 ``gt_overlap.log`` (``byoc make-fragments ... --min-overlap 0.1``, one folder per scene; several
@@ -13,10 +13,13 @@ weights with ``byoc register``'s defaults for learned features and ONE setting c
 through ``byoc eval-fmr``'s evaluation (the same seeded 5000 points per fragment, the same
 protocols) on:
 
-* the development fragments, split by overlap into 10-30 % (3DLoMatch's band) and above 30 %
-  (3DMatch's), as ``byoc eval-fmr DEV --overlap-bands 0.1,0.3,1``;
-* the 3DMatch sample (3 pairs above 30 %) and the 3DLoMatch sample (5 pairs, 10-30 %), with the
+* ``dev-low`` and ``dev-high``: the development fragments whose overlap is 10-30 % (3DLoMatch's
+  band) and above 30 % (3DMatch's), as ``byoc eval-fmr DEV --overlap-bands 0.1,0.3`` and
+  ``--overlap-bands 0.3,1``;
+* ``3DLoMatch-sample`` (5 pairs, 10-30 %) and ``3DMatch-sample`` (3 pairs above 30 %), with the
   official ground truth of ``../shared/data/3dmatch/benchmarks``.
+
+``--sets`` runs some of them (a lever that does not raise ``dev-low`` needs no other run).
 
 One JSON per lever and pair set goes to ``--out`` (the ``eval-fmr --json`` report); a JSON
 already there is reused, so an interrupted sweep resumes. Printed: a Markdown table, one row per
@@ -52,16 +55,17 @@ LEVERS: dict[str, tuple[str, dict]] = {
     "mutual+ransac-1M": ("byoc", {"mutual": True, "ransac_iterations": 1_000_000}),
     "points-10k+ransac-1M": ("byoc", {"max_points": 10_000, "ransac_iterations": 1_000_000}),
 }
-BANDS = "0.1,0.3,1"
+SETS = ("dev-low", "dev-high", "3DLoMatch-sample", "3DMatch-sample")
 
 
-def _sets(fragments: Path) -> list[tuple[str, Path, Path | None, str | None]]:
-    """``(name, root, gt_dir, bands)`` of every pair set."""
-    return [
-        ("dev", fragments, None, BANDS),
-        ("3DMatch sample", SAMPLE / "3DMatch", GT / "3DMatch", None),
-        ("3DLoMatch sample", SAMPLE / "3DLoMatch", GT / "3DLoMatch", None),
-    ]
+def _set(name: str, fragments: Path) -> tuple[Path, Path | None, str | None]:
+    """``(root, gt_dir, bands)`` of a pair set."""
+    return {
+        "dev-low": (fragments, None, "0.1,0.3"),
+        "dev-high": (fragments, None, "0.3,1"),
+        "3DLoMatch-sample": (SAMPLE / "3DLoMatch", GT / "3DLoMatch", None),
+        "3DMatch-sample": (SAMPLE / "3DMatch", GT / "3DMatch", None),
+    }[name]
 
 
 def _slug(text: str) -> str:
@@ -112,6 +116,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cache-dir", type=Path, default=None)
     parser.add_argument("--levers", nargs="+", default=list(LEVERS))
+    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
     parser.add_argument("--table-only", action="store_true")
     args = parser.parse_args()
     unknown = [lever for lever in args.levers if lever not in LEVERS]
@@ -120,34 +125,24 @@ def main() -> int:
     if not args.fragments.is_dir():
         parser.error(f"--fragments {args.fragments}: no such folder")
     args.out.mkdir(parents=True, exist_ok=True)
-    header = [
-        "lever",
-        "dev 10-30 %",
-        "dev > 30 %",
-        "3DLoMatch sample",
-        "3DMatch sample",
-        "s / pair (dev)",
-    ]
+    header = ["lever", *SETS, "s / pair (dev-low)"]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for lever in args.levers:
         reports = {}
-        for name, root, gt_dir, bands in _sets(args.fragments):
-            out = args.out / f"{_slug(lever)}-{_slug(name)}.json"
+        for name in SETS:
+            root, gt_dir, bands = _set(name, args.fragments)
+            out = args.out / f"{_slug(lever)}-{name}.json"
             if not out.exists():
-                if args.table_only:
+                if args.table_only or name not in args.sets:
                     continue
                 print(f"running {lever} on {name}", file=sys.stderr, flush=True)
                 report = _evaluate(lever, root, gt_dir, bands, args.cache_dir)
                 out.write_text(json.dumps(report, indent=1) + "\n")
             reports[name] = json.loads(out.read_text())
-        cells = []
-        dev = reports.get("dev")
-        for band in (0, 1):
-            cells.append(_cell(dev["bands"][band]["results"][lever]) if dev else "-")
-        for name in ("3DLoMatch sample", "3DMatch sample"):
-            cells.append(_cell(reports[name]["results"][lever]) if name in reports else "-")
-        cells.append(f"{dev['results'][lever]['seconds_per_pair']:.2f}" if dev else "-")
+        cells = [_cell(reports[n]["results"][lever]) if n in reports else "-" for n in SETS]
+        low = reports.get("dev-low")
+        cells.append(f"{low['results'][lever]['seconds_per_pair']:.2f}" if low else "-")
         print(f"| {lever} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
