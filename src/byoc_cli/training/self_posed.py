@@ -75,7 +75,12 @@ def pseudo_config(config: TrainConfig, round_number: int = 1) -> PseudoPoseConfi
     gaps = config.pair_gaps
     if round_number > 1:
         gaps += tuple(g for g in config.round_gaps if g not in config.pair_gaps)
-    return PseudoPoseConfig(voxel_size=config.voxel_size, gaps=gaps, seed=config.seed)
+    return PseudoPoseConfig(
+        voxel_size=config.voxel_size,
+        gaps=gaps,
+        min_fitness=config.pair_min_fitness,
+        seed=config.seed,
+    )
 
 
 def round_of(step: int, config: TrainConfig) -> int:
