@@ -57,6 +57,7 @@ LEVERS: dict[str, tuple[str, dict]] = {
     "ransac-1M": ("byoc", {"ransac_iterations": 1_000_000}),
     "inlier-1.5v": ("byoc", {"inlier_factor": 1.5}),
     "inlier-3v": ("byoc", {"inlier_factor": 3.0}),
+    "inlier-4v": ("byoc", {"inlier_factor": 4.0}),
     "points-10k": ("byoc", {"max_points": 10_000}),
     "points-20k": ("byoc", {"max_points": 20_000}),
     "mutual+ransac-1M": ("byoc", {"mutual": True, "ransac_iterations": 1_000_000}),
