@@ -74,6 +74,8 @@ class RegisterConfig:
             ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to
             fine on the full-resolution clouds, degenerate directions held).
         icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
+        mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
+            (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
         confidence_model: the features whose calibration turns the cues into the confidence
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
@@ -89,6 +91,7 @@ class RegisterConfig:
     ransac_confidence: float = 0.999
     refine: str | None = None
     icp_factor: float = 2.0
+    mutual: bool = False
     seed: int = 0
     chunk_size: int | None = None
     confidence_model: str = "byoc"
@@ -198,6 +201,7 @@ def estimate_transform(
         k=config.num_correspondences,
         chunk_size=config.chunk_size,
         parallel=parallel,
+        mutual=config.mutual,
     )
     if corr.src_idx.numel() < 3:
         raise RegistrationError(f"only {corr.src_idx.numel()} correspondences (need 3)")
