@@ -226,8 +226,12 @@ def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monke
         "measure",
         lambda p, label="cloud", f=scale.measure: measured.append(label) or f(p, label),
     )
-    fa, fb = (registrar.extract(p) for p in (a, b))
-    assert len(measured) == 2
+    choice = registrar.choose_voxel(a, b)  # the pair's voxel, as register-batch reads it
+    assert len(measured) == 2 and choice.keep_of(0) == choice.keep_of(1) == 1.0
+    fa, fb = (
+        registrar.extract_points(p, 1.0, "cloud", choice.voxel_size, choice.refine_voxel)
+        for p in (a, b)
+    )
     extracted = []
     real = byoc_cli.Registrar.extract_points
     monkeypatch.setattr(
@@ -238,7 +242,7 @@ def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monke
     pairs = [(fa, fb), (fb, fa), (fa, fb)]
     got = [registrar.match(s, t, seed=2) for s, t in pairs]
     assert [r.fallback is not None for r in got] == [True] * 3
-    assert len(measured) == 2  # the scales the learned voxel choice read
+    assert len(measured) == 4  # each cloud once more, by the fallback, then kept
     assert extracted.count("fpfh") == 2  # each cloud's FPFH features once
     assert got[2].T_tgt_src.tobytes() == got[0].T_tgt_src.tobytes()
     fresh = byoc_cli.Registrar("fpfh")

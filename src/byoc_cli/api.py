@@ -260,7 +260,7 @@ class Registrar:
         """
         if labels is None:
             labels = [label] if len(clouds) == 1 else ["source", "target"]
-        scales = [self.cloud_scale(c, name) for c, name in zip(clouds, labels, strict=True)]
+        scales = [self.measure(c, name) for c, name in zip(clouds, labels, strict=True)]
         return self.voxel_for(*scales)
 
     @staticmethod
@@ -277,9 +277,10 @@ class Registrar:
         return measure(torch.from_numpy(points), label)
 
     def cloud_scale(self, points: np.ndarray, label: str = "cloud"):
-        """:meth:`measure` of ``points (N, 3)``, measured once per array while it is among
-        the most recently measured (a pair's fallback reads the same clouds' scale, a
-        batch's pairs share clouds).
+        """:meth:`measure` of ``points (N, 3)``, measured once per array (told by identity:
+        arrays the registrar read itself, never changed) while it is among the most recently
+        measured (a pair's fallback reads the same clouds' scale, a batch's pairs share
+        clouds).
 
         Raises:
             RegistrationError: too few distinct points to read a scale from.
