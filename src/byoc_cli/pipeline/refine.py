@@ -31,6 +31,7 @@ import torch
 from byoc_cli.fitting.point_to_plane import DEGENERACY, SLIDING, point_to_plane_step
 from byoc_cli.geometry.neighbors import (
     CellIndex,
+    candidate_coordinates,
     nearest_candidates,
     nearest_of,
     surface_normals,
@@ -198,8 +199,9 @@ def refine_multiscale(
             moved = p @ T[:3, :3].T + T[:3, 3]
             if anchor is None or float((moved - anchor).abs().max()) > RESEARCH * size:
                 candidates = _search(index, moved, SEARCH_REACH[level], parallel)
+                coordinates = candidate_coordinates(index, candidates)
                 anchor = moved
-            near = nearest_of(index, moved, candidates)
+            near = nearest_of(index, moved, candidates, coordinates)
             ok = near.distance2 <= dist**2
             fitness = float(ok.double().mean())
             if int(ok.sum()) < MIN_CORRESPONDENCES:
