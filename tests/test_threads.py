@@ -55,6 +55,19 @@ def test_a_wait_policy_the_user_set_wins():
     assert out == "ACTIVE"
 
 
+def test_freed_memory_is_kept_unless_the_user_tuned_the_allocator():
+    import ctypes
+
+    glibc = True
+    try:
+        ctypes.CDLL("libc.so.6").mallopt  # noqa: B018
+    except (OSError, AttributeError):
+        glibc = False
+    assert threads.keep_freed_memory({}) is (glibc and sys.platform == "linux")
+    assert threads.keep_freed_memory({"MALLOC_MMAP_THRESHOLD_": "65536"}) is False
+    assert threads.keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=1"}) is False
+
+
 def test_the_api_applies_the_policy_when_it_imports_torch_first():
     out = _python(
         "import os; from byoc_cli import api; import torch; "

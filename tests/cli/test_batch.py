@@ -61,15 +61,17 @@ def test_batch_gives_the_transforms_of_single_registers(runner, sample, tmp_path
     listing.write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
     res = runner.invoke(cli, ["register-batch", str(listing), "--out-dir", str(out), "--seed", "3"])
-    assert res.exit_code == 0, res.output
     summary = _summary(out / "summary.jsonl")
-    assert [s["status"] for s in summary] == ["ok"] * len(records)
+    statuses = [s["status"] for s in summary]
+    assert set(statuses) <= {"ok", "low_confidence"} and statuses.count("ok") >= 2
+    # exit 3 when a pair is below --min-confidence (fragments 21 -> 7 at this seed), else 0
+    assert res.exit_code == (3 if "low_confidence" in statuses else 0), res.output
     for rec, line in zip(records, summary, strict=True):
         single = tmp_path / f"single_{rec.i}_{rec.j}.txt"
         src = sample / SCENE / f"cloud_bin_{rec.j}.ply"
         tgt = sample / SCENE / f"cloud_bin_{rec.i}.ply"
         res = runner.invoke(cli, ["register", str(src), str(tgt), "-o", str(single), "--seed", "3"])
-        assert res.exit_code == 0, res.output
+        assert res.exit_code == {"ok": 0, "low_confidence": 3}[line["status"]], res.output
         batch = out / f"cloud_bin_{rec.j}__cloud_bin_{rec.i}.txt"
         assert batch.read_bytes() == single.read_bytes()
         assert np.allclose(np.array(line["T_tgt_src"]), np.loadtxt(single))

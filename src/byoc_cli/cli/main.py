@@ -8,10 +8,11 @@ import click
 
 from byoc_cli import __version__
 from byoc_cli.cli.options import verbosity_options
-from byoc_cli.threads import apply_thread_policy, set_wait_policy
+from byoc_cli.threads import apply_thread_policy, keep_freed_memory, set_wait_policy
 
 # OpenMP reads its wait policy once, when torch first loads it: before any command runs
 set_wait_policy()
+keep_freed_memory()
 
 # subcommand name -> (module, attribute); imported only when the command runs or --help asks
 _COMMANDS = {

@@ -31,6 +31,7 @@ import torch
 from byoc_cli.fitting.point_to_plane import DEGENERACY, SLIDING, point_to_plane_step
 from byoc_cli.geometry.neighbors import (
     CellIndex,
+    candidate_coordinates,
     nearest_candidates,
     nearest_of,
     surface_normals,
@@ -111,7 +112,7 @@ class RefineCloud:
         self.voxel_size = float(voxel_size)
         self.levels = _level_geometry(self.voxel_size)
         self._averages: dict[int, torch.Tensor] = {}
-        self._sources: dict[int, torch.Tensor] = {}
+        self._sources: dict[tuple[int, int], torch.Tensor] = {}
         self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
         # one lock per level: levels are built side by side, each once
         self._locks = [threading.RLock() for _ in self.levels]
@@ -122,13 +123,13 @@ class RefineCloud:
                 self._averages[level] = voxel_average(self.points, self.levels[level][0])
             return self._averages[level]
 
-    def source(self, level: int) -> torch.Tensor:
-        """``(K, 3)`` source points of ``level``."""
+    def source(self, level: int, max_points: int = MAX_SOURCE_POINTS) -> torch.Tensor:
+        """``(K, 3)`` source points of ``level``, ``K <= max_points`` (an even stride)."""
         with self._locks[level]:
-            if level not in self._sources:
+            if (level, max_points) not in self._sources:
                 p = self._average(level)
-                self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
-            return self._sources[level]
+                self._sources[level, max_points] = p[:: max(1, -(-len(p) // max_points))]
+            return self._sources[level, max_points]
 
     def target(self, level: int) -> tuple[torch.Tensor, torch.Tensor, CellIndex]:
         """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and a
@@ -161,6 +162,7 @@ def refine_multiscale(
     degeneracy: float = DEGENERACY,
     sliding: float = SLIDING,
     parallel: Callable[[Sequence[Callable[[], torch.Tensor]]], list] | None = None,
+    max_source_points: int = MAX_SOURCE_POINTS,
 ) -> Refinement:
     """Refine ``T_init`` by coarse-to-fine point-to-plane ICP.
 
@@ -175,6 +177,7 @@ def refine_multiscale(
         parallel: runs independent calls (results in order), e.g. side by side on two
             threads (:func:`byoc_cli.threads.side_by_side`): the nearest-point searches of
             the two halves of the source points. None: in turn. The result is the same.
+        max_source_points: source points per level at most.
 
     Returns:
         :class:`Refinement`; ``T_init`` itself where a level has fewer than
@@ -187,7 +190,7 @@ def refine_multiscale(
     T = T_init.detach().to(device="cpu", dtype=torch.float64).clone()
     rank, fitness, rmse, conditioning = 0, 0.0, float("nan"), 0.0
     for level, (size, dist, _) in enumerate(src.levels):
-        p = src.source(level)  # levels, normals and searches: all threads
+        p = src.source(level, max_source_points)  # levels, normals and searches: all threads
         q, n, index = tgt.target(level)
         if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
             break
@@ -196,8 +199,9 @@ def refine_multiscale(
             moved = p @ T[:3, :3].T + T[:3, 3]
             if anchor is None or float((moved - anchor).abs().max()) > RESEARCH * size:
                 candidates = _search(index, moved, SEARCH_REACH[level], parallel)
+                coordinates = candidate_coordinates(index, candidates)
                 anchor = moved
-            near = nearest_of(index, moved, candidates)
+            near = nearest_of(index, moved, candidates, coordinates)
             ok = near.distance2 <= dist**2
             fitness = float(ok.double().mean())
             if int(ok.sum()) < MIN_CORRESPONDENCES:
@@ -260,3 +264,105 @@ def _threads(count: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+#: restarts of the refinement, the check of the basin a result sits in: the result turned by
+#: +-RESTART_DEG about each axis through the source's centroid (6 starts), each refined on at
+#: most RESTART_POINTS source points per level
+RESTART_DEG = 8.0
+RESTART_POINTS = 2000
+#: two refined ends closer than this (degrees, and multiples of the feature voxel) are one place
+SAME_DEG = 1.0
+SAME_VOXELS = 1.0
+
+
+class Restarts(NamedTuple):
+    """Outcome of :func:`restart_refinement`.
+
+    Attributes:
+        ends: ``(S, 4, 4)`` float64: where the refinement ends from each start; start 0 is
+            the result itself.
+        fitness: ``(S,)`` float64 fitness of each end (the same reduced refinement for all).
+        voxel_size: the feature voxel the places are compared at.
+    """
+
+    ends: torch.Tensor
+    fitness: torch.Tensor
+    voxel_size: float
+
+    def same_place(self, i: int) -> torch.Tensor:
+        """``(S,)`` bool: the ends within ``SAME_DEG`` and ``SAME_VOXELS`` of end ``i``."""
+        D = torch.linalg.inv(self.ends[i]) @ self.ends
+        cos = ((D[:, :3, :3].diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
+        angle = torch.rad2deg(torch.arccos(cos))
+        shift = torch.linalg.vector_norm(D[:, :3, 3], dim=-1) / self.voxel_size
+        return (angle < SAME_DEG) & (shift < SAME_VOXELS)
+
+    def best(self) -> int:
+        """The end of highest fitness (the first on ties)."""
+        return int(torch.argmax(self.fitness))
+
+    def gain(self, i: int) -> float:
+        """Highest fitness of the ends elsewhere than end ``i`` minus end ``i``'s (-1: every
+        end is in its place)."""
+        elsewhere = ~self.same_place(i)
+        if not bool(elsewhere.any()):
+            return -1.0
+        return float(self.fitness[elsewhere].max() - self.fitness[i])
+
+    def returned(self, i: int) -> float:
+        """Share of the restarts (starts 1 on) that end in end ``i``'s place."""
+        return float(self.same_place(i)[1:].double().mean()) if len(self.ends) > 1 else 1.0
+
+
+def restart_starts(T: torch.Tensor, centroid: torch.Tensor) -> torch.Tensor:
+    """``(7, 4, 4)`` starts: ``T (4, 4)`` itself, then turned by +-``RESTART_DEG`` about each
+    axis through the source point ``centroid (3,)``."""
+    starts = [T]
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            angle = math.radians(sign * RESTART_DEG)
+            i, j = [(1, 2), (0, 2), (0, 1)][axis]
+            M = torch.eye(4, dtype=torch.float64)
+            M[i, i] = M[j, j] = math.cos(angle)
+            M[i, j], M[j, i] = -math.sin(angle), math.sin(angle)
+            M[:3, 3] = centroid - M[:3, :3] @ centroid  # about the centroid
+            starts.append(T @ M)
+    return torch.stack(starts)
+
+
+def restart_refinement(
+    points_src: torch.Tensor | RefineCloud,
+    points_tgt: torch.Tensor | RefineCloud,
+    T: torch.Tensor,
+    voxel_size: float,
+    parallel: Callable[[Sequence[Callable[[], torch.Tensor]]], list] | None = None,
+) -> Restarts:
+    """Refine again from ``T (4, 4)`` and from the starts around it of :func:`restart_starts`,
+    on at most ``RESTART_POINTS`` source points per level: a right result sits in a basin
+    the restarts come back to, and no restart ends elsewhere with a better fitness.
+
+    Args: as :func:`refine_multiscale`; ``parallel`` runs two halves of the starts side by side.
+    """
+    src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
+    centroid = src.source(0, RESTART_POINTS).mean(0)
+    starts = restart_starts(T.detach().to(torch.float64).cpu(), centroid)
+
+    def run(indices: Sequence[int]) -> list[Refinement]:
+        return [
+            refine_multiscale(src, tgt, starts[k], voxel_size, max_source_points=RESTART_POINTS)
+            for k in indices
+        ]
+
+    order = list(range(len(starts)))
+    if parallel is None:
+        ends = run(order)
+    else:
+        halves = parallel([lambda: run(order[0::2]), lambda: run(order[1::2])])
+        ends = [None] * len(order)
+        ends[0::2], ends[1::2] = halves[0], halves[1]
+    return Restarts(
+        torch.stack([e.T_tgt_src for e in ends]),
+        torch.tensor([e.fitness for e in ends], dtype=torch.float64),
+        float(voxel_size),
+    )

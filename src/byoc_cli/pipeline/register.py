@@ -22,7 +22,7 @@ from byoc_cli.matching import ratio_test_correspondences
 from byoc_cli.pipeline.confidence import MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.recipe import ESTIMATORS, PAPER, RegistrationRecipe
-from byoc_cli.pipeline.refine import refine_multiscale
+from byoc_cli.pipeline.refine import Refinement, refine_multiscale, restart_refinement
 from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
@@ -49,6 +49,12 @@ class RegisterConfig:
             ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to
             fine on the full-resolution clouds, degenerate directions held).
         icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
+        restarts: after ``"multiscale"`` refinement, refine again from starts turned around the
+            result (:func:`byoc_cli.pipeline.refine.restart_refinement`), keep the end of best
+            fitness when it is elsewhere and better by ``SWITCH_GAIN``, and report how the
+            restarts agree (``restart_return``, ``restart_gain``).
+        mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
+            (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
         confidence_model: the features whose calibration turns the cues into the confidence
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
@@ -64,6 +70,8 @@ class RegisterConfig:
     ransac_confidence: float = PAPER.fitting.ransac_confidence
     refine: str | None = None
     icp_factor: float = 2.0
+    mutual: bool = PAPER.matching.mutual
+    restarts: bool = PAPER.refinement.restarts
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
@@ -96,6 +104,8 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         ransac_iterations=fit.ransac_iterations,
         ransac_confidence=fit.ransac_confidence,
         refine=None if method == "none" else method,
+        mutual=recipe.matching.mutual,
+        restarts=recipe.refinement.restarts,
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
     )
@@ -193,6 +203,7 @@ def estimate_transform(
         k=config.num_correspondences,
         chunk_size=config.chunk_size,
         parallel=parallel,
+        mutual=config.mutual,
     )
     if corr.src_idx.numel() < 3:
         raise RegistrationError(f"only {corr.src_idx.numel()} correspondences (need 3)")
@@ -213,6 +224,7 @@ def estimate_transform(
     start = timer("fit", start)
 
     refinement = None
+    restart_cues = {"restart_return": 1.0, "restart_gain": -1.0}  # no restarts: no doubt
     if config.refine == "icp":
         T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
         start = timer("refine", start)
@@ -223,6 +235,12 @@ def estimate_transform(
         )
         T = refinement.T_tgt_src
         start = timer("refine", start)
+        if config.restarts:
+            refinement, restart_cues = _restart(
+                (full_src, full_tgt), refinement, refine_voxel or voxel_size, parallel
+            )
+            T = refinement.T_tgt_src
+            start = timer("restarts", start)
 
     residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
     inlier = residual < threshold
@@ -234,6 +252,7 @@ def estimate_transform(
     coarse = torch.linalg.vector_norm(apply_transform(T_coarse, p) - q, dim=1) < threshold
     shift = T @ torch.linalg.inv(T_coarse)
     cues = {
+        **restart_cues,
         "inlier_share": share,
         "inlier_ratio": num_inliers / p.shape[0],
         "inliers": float(num_inliers),
@@ -262,6 +281,29 @@ def estimate_transform(
         timings=timer.timings,
         cues=cues,
     )
+
+
+#: a restart's end replaces the refined result when its fitness is higher by this
+SWITCH_GAIN = 0.01
+
+
+def _restart(clouds, refinement: Refinement, voxel_size: float, parallel):
+    """The refinement to report and the restart cues: :func:`restart_refinement` around
+    ``refinement``'s result; where the best end lies elsewhere and its fitness is higher by
+    ``SWITCH_GAIN``, the full refinement from there replaces it."""
+    restarts = restart_refinement(*clouds, refinement.T_tgt_src, voxel_size, parallel=parallel)
+    pick = restarts.best()
+    if (
+        bool(restarts.same_place(0)[pick])
+        or restarts.fitness[pick] - restarts.fitness[0] <= SWITCH_GAIN
+    ):
+        pick = 0
+    else:
+        refinement = refine_multiscale(*clouds, restarts.ends[pick], voxel_size, parallel=parallel)
+    return refinement, {
+        "restart_return": restarts.returned(pick),
+        "restart_gain": restarts.gain(pick),
+    }
 
 
 def _angle_deg(R: torch.Tensor) -> float:
