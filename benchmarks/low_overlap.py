@@ -110,8 +110,10 @@ def _evaluate(
     bands: str | None,
     cache: Path | None,
     coarse: bool,
+    weights_path: Path | None = None,
 ):
-    """The eval-fmr report of one lever on one pair set."""
+    """The eval-fmr report of one lever on one pair set (``weights_path``: the learned
+    levers' weights; None: the shipped ones)."""
     from byoc_cli.evaluation.bands import parse_overlap_bands, split_by_band
     from byoc_cli.evaluation.cache import FeatureCache
     from byoc_cli.evaluation.fmr import FmrConfig, evaluate_fmr, load_benchmark_pairs
@@ -123,7 +125,7 @@ def _evaluate(
     method, changes = LEVERS[lever]
     if coarse:
         changes = {**changes, "refine": None}
-    weights = [default_weights_path()] if method == "byoc" else []
+    weights = [weights_path or default_weights_path()] if method == "byoc" else []
     methods = build_methods([method], weights, max_points=5000)
     methods[0].config = dataclasses.replace(methods[0].config, **changes)
     methods[0].name = lever
@@ -160,6 +162,13 @@ def main() -> int:
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
     parser.add_argument("--coarse", action="store_true")
     parser.add_argument("--table-only", action="store_true")
+    parser.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="weights of the learned levers (default: the shipped ones); their reports are "
+        "named after the file",
+    )
     args = parser.parse_args()
     unknown = [lever for lever in args.levers if lever not in LEVERS]
     if unknown:
@@ -175,18 +184,26 @@ def main() -> int:
         for name in SETS:
             root, gt_dir, bands = _set(name, args.fragments)
             suffix = "-coarse" if args.coarse else ""
-            out = args.out / f"{_slug(lever)}-{name}{suffix}.json"
+            tag = f"{args.weights.stem}-" if args.weights and LEVERS[lever][0] == "byoc" else ""
+            out = args.out / f"{tag}{_slug(lever)}-{name}{suffix}.json"
             if not out.exists():
                 if args.table_only or name not in args.sets:
                     continue
                 print(f"running {lever} on {name}", file=sys.stderr, flush=True)
-                report = _evaluate(lever, root, gt_dir, bands, args.cache_dir, args.coarse)
+                report = _evaluate(
+                    lever, root, gt_dir, bands, args.cache_dir, args.coarse, args.weights
+                )
                 out.write_text(json.dumps(report, indent=1) + "\n")
             reports[name] = json.loads(out.read_text())
         cells = [_cell(reports[n]["results"][lever]) if n in reports else "-" for n in SETS]
         low = reports.get("dev-low")
         cells.append(f"{low['results'][lever]['seconds_per_pair']:.2f}" if low else "-")
-        print(f"| {lever} | " + " | ".join(cells) + " |", flush=True)
+        label = (
+            f"{args.weights.stem}: {lever}"
+            if args.weights and LEVERS[lever][0] == "byoc"
+            else lever
+        )
+        print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
 

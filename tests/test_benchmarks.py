@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -68,3 +69,15 @@ def test_low_overlap_table_only_runs_nothing(tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[-1] == "| mutual | - | - | - | - | - |"
     assert "running" not in result.stderr
+
+
+def test_low_overlap_reports_of_other_weights_are_named_after_them(tmp_path):
+    report = {"results": {"shipped": {"seconds_per_pair": 1.5}}}
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "lo-shipped-dev-low-coarse.json").write_text(json.dumps(report))
+    args = ["--fragments", str(tmp_path), "--levers", "shipped", "fpfh", "--table-only"]
+    result = _low_overlap(tmp_path, *args, "--coarse", "--weights", str(tmp_path / "lo.pt"))
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[-2].startswith("| lo: shipped |") and lines[-2].endswith("| 1.50 |")
+    assert lines[-1] == "| fpfh | - | - | - | - | - |"  # FPFH reads no weights

@@ -17,6 +17,7 @@ from byoc_cli.pipeline import refine as refine_module
 from byoc_cli.pipeline.refine import (
     RefineCloud,
     Restarts,
+    measure_fit,
     refine_multiscale,
     restart_refinement,
     restart_starts,
@@ -191,3 +192,24 @@ def test_restart_bookkeeping_places_gains_and_returns():
     assert restarts.best() == 2  # the first of the ties
     assert restarts.gain(0) == pytest.approx(0.1) and restarts.gain(2) == pytest.approx(-0.08)
     assert restarts.returned(0) == 0.5 and restarts.returned(2) == 0.5
+
+
+def test_measure_fit_judges_a_transform_without_moving_it(generator):
+    T_true = _motion([0.1, 0.3, -0.2], [0.2, -0.1, 0.05])
+    src, tgt = _room_pair(60_000, T_true, generator)
+    right = measure_fit(src, tgt, T_true, voxel_size=0.025)
+    off = _motion([0.0, 0.0, math.radians(30.0)], [0.5, 0.0, 0.0]) @ T_true
+    wrong = measure_fit(src, tgt, off, voxel_size=0.025)
+    assert torch.equal(right.T_tgt_src, T_true) and torch.equal(wrong.T_tgt_src, off)
+    assert right.fitness > 0.5 and right.rank == 6 and right.rmse < 0.5  # 2.5 cm sampling
+    assert wrong.fitness < 0.5 * right.fitness
+    # what the refinement reports at its own end, where it has converged from the truth
+    refined = refine_multiscale(src, tgt, T_true, voxel_size=0.025)
+    again = measure_fit(src, tgt, refined.T_tgt_src, voxel_size=0.025)
+    assert again.fitness == pytest.approx(refined.fitness, abs=0.01)
+
+
+def test_measure_fit_of_clouds_that_do_not_meet_is_zero():
+    a = torch.rand(500, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    out = measure_fit(a, a + 100.0, torch.eye(4, dtype=torch.float64), voxel_size=0.025)
+    assert out.fitness == 0.0 and out.rank == 0

@@ -79,8 +79,55 @@ FPFH_COEFFICIENTS = (
     -0.5455,
     -1.0763,
 )
-#: the coefficients of each kind of features
-MODELS = {"byoc": COEFFICIENTS, "fpfh": FPFH_COEFFICIENTS}
+#: the same for results that the multiscale ICP did not refine (``--refine none``, the default
+#: of ``--features fpfh``; ``icp``), whose fit cues :func:`~byoc_cli.pipeline.refine.measure_fit`
+#: measures at the returned transform: ``python benchmarks/confidence.py collect --refine none``
+#: on the same 320 pairs (311 registered each; 164 learned and 140 FPFH results right), then
+#: ``fit``. The shift and restart cues are constant there (weight 0). In its grouped
+#: cross-validation, at :data:`DEFAULT_MIN_CONFIDENCE`: precision 70.9 %, recall 81.7 %
+#: (learned), 68.2 % / 87.1 % (FPFH)
+UNREFINED_COEFFICIENTS = (
+    -0.2883,
+    -0.3485,
+    2.2746,
+    -1.5063,
+    0.1448,
+    0.4037,
+    -0.1602,
+    0.1946,
+    2.6591,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    -10.6990,
+)
+FPFH_UNREFINED_COEFFICIENTS = (
+    -0.4269,
+    0.2366,
+    1.8489,
+    -0.2141,
+    -0.0362,
+    1.0768,
+    -0.4913,
+    0.0315,
+    2.1547,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    -6.5038,
+)
+#: the kinds of features a model is chosen by (``RegisterConfig.confidence_model``)
+MODEL_KINDS = ("byoc", "fpfh")
+#: the coefficients of each kind of features, refined by the multiscale ICP or not
+#: (``"<kind>-unrefined"``)
+MODELS = {
+    "byoc": COEFFICIENTS,
+    "fpfh": FPFH_COEFFICIENTS,
+    "byoc-unrefined": UNREFINED_COEFFICIENTS,
+    "fpfh-unrefined": FPFH_UNREFINED_COEFFICIENTS,
+}
 
 _EPS = 1e-4
 #: the restart gain (a share of the source points) counts up to this either way

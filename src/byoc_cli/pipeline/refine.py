@@ -222,6 +222,45 @@ def refine_multiscale(
     return Refinement(T, rank, fitness, rmse, conditioning)
 
 
+def measure_fit(
+    points_src: torch.Tensor | RefineCloud,
+    points_tgt: torch.Tensor | RefineCloud,
+    T: torch.Tensor,
+    voxel_size: float,
+) -> Refinement:
+    """How well ``T (4, 4)`` fits, measured as :func:`refine_multiscale` measures its own
+    result, without moving it: the finest level's fitness and residual, and the rank and
+    conditioning of its normal equations at ``T``. The confidence of a result that is not
+    refined reads these (a transform is judged by how its clouds meet, whether or not it
+    was refined).
+
+    Args: as :func:`refine_multiscale`.
+
+    Returns:
+        :class:`Refinement` with ``T_tgt_src = T``; fitness 0 and rank 0 where fewer than
+        ``MIN_CORRESPONDENCES`` points meet.
+    """
+    src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
+    T = T.detach().to(device="cpu", dtype=torch.float64).clone()
+    level = len(src.levels) - 1
+    _, dist, _ = src.levels[level]
+    p = src.source(level)
+    q, n, index = tgt.target(level)
+    if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
+        return Refinement(T, 0, 0.0)
+    moved = p @ T[:3, :3].T + T[:3, 3]
+    near = nearest_of(index, moved, _search(index, moved, SEARCH_REACH[level], None))
+    ok = near.distance2 <= dist**2
+    fitness = float(ok.double().mean())
+    if int(ok.sum()) < MIN_CORRESPONDENCES:
+        return Refinement(T, 0, fitness)
+    rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
+    j = near.index[ok]
+    with _threads(1):
+        step = point_to_plane_step(moved[ok], q[j], n[j])
+    return Refinement(T, step.rank, fitness, rmse, float(step.eigenvalues[0]))
+
+
 #: fewest source points whose search is split in two for ``parallel``
 SPLIT_SEARCH = 4096
 

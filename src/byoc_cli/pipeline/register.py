@@ -19,10 +19,15 @@ from byoc_cli.fitting import randomized_procrustes, ransac
 from byoc_cli.geometry import apply_transform
 from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
-from byoc_cli.pipeline.confidence import MODELS, probability_right
+from byoc_cli.pipeline.confidence import MODEL_KINDS, MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.recipe import ESTIMATORS, PAPER, RegistrationRecipe
-from byoc_cli.pipeline.refine import Refinement, refine_multiscale, restart_refinement
+from byoc_cli.pipeline.refine import (
+    Refinement,
+    measure_fit,
+    refine_multiscale,
+    restart_refinement,
+)
 from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
@@ -81,9 +86,9 @@ class RegisterConfig:
             raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
         if self.refine not in REFINERS:
             raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
-        if self.confidence_model not in MODELS:
+        if self.confidence_model not in MODEL_KINDS:
             raise ValueError(
-                f"confidence_model must be one of {sorted(MODELS)}, got {self.confidence_model!r}"
+                f"confidence_model must be one of {MODEL_KINDS}, got {self.confidence_model!r}"
             )
         if self.num_correspondences < 1 or self.max_points < 0:
             raise ValueError("num_correspondences must be >= 1 and max_points >= 0")
@@ -225,11 +230,11 @@ def estimate_transform(
 
     refinement = None
     restart_cues = {"restart_return": 1.0, "restart_gain": -1.0}  # no restarts: no doubt
+    full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
     if config.refine == "icp":
         T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
         start = timer("refine", start)
     elif config.refine == "multiscale":
-        full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
         refinement = refine_multiscale(
             full_src, full_tgt, T, refine_voxel or voxel_size, parallel=parallel
         )
@@ -242,6 +247,9 @@ def estimate_transform(
             T = refinement.T_tgt_src
             start = timer("restarts", start)
 
+    if refinement is None:  # the fit cues of the result as it is
+        refinement = measure_fit(full_src, full_tgt, T, refine_voxel or voxel_size)
+        start = timer("measure", start)
     residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
     inlier = residual < threshold
     num_inliers = int(inlier.sum())
@@ -258,14 +266,16 @@ def estimate_transform(
         "inliers": float(num_inliers),
         "overlap": overlap,
         "coarse_inlier_ratio": float(coarse.double().mean()),
-        "fitness": 1.0 if refinement is None else refinement.fitness,
-        "rmse": 0.0 if refinement is None else refinement.rmse,
-        "rank": 6.0 if refinement is None else float(refinement.rank),
-        "conditioning": 1.0 if refinement is None else refinement.conditioning,
+        "fitness": refinement.fitness,
+        "rmse": refinement.rmse,
+        "rank": float(refinement.rank),
+        "conditioning": refinement.conditioning,
         "shift_deg": _angle_deg(shift[:3, :3]),
         "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / voxel_size,
     }
-    model = MODELS[config.confidence_model]
+    # a result that the multiscale ICP did not refine has its own calibration
+    kind = config.confidence_model
+    model = MODELS[kind if config.refine == "multiscale" else f"{kind}-unrefined"]
     confidence = probability_right(cues, model) if num_inliers >= 3 else 0.0
     timer("verify", start)
     return RegistrationResult(
