@@ -58,8 +58,8 @@ threads_option = click.option(
     expose_value=False,
     callback=_thread_policy,
     help="Threads for the numeric work [default: OMP_NUM_THREADS, else the cores this "
-    "process may use: CPU affinity and cgroup quota]. Idle threads sleep "
-    "(OMP_WAIT_POLICY=PASSIVE unless set).",
+    "process may use: CPU affinity and cgroup quota]. Idle threads sleep after a short "
+    "spin (OMP_WAIT_POLICY=PASSIVE, GOMP_SPINCOUNT=1000, unless set).",
 )
 
 
