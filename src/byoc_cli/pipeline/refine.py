@@ -28,9 +28,15 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from byoc_cli.fitting.point_to_plane import DEGENERACY, SLIDING, point_to_plane_step
+from byoc_cli.fitting.point_to_plane import (
+    DEGENERACY,
+    SLIDING,
+    PlaneStep,
+    point_to_plane_step,
+)
 from byoc_cli.geometry.neighbors import (
     CellIndex,
+    Nearest,
     candidate_coordinates,
     nearest_candidates,
     nearest_of,
@@ -202,17 +208,12 @@ def refine_multiscale(
                 coordinates = candidate_coordinates(index, candidates)
                 anchor = moved
             near = nearest_of(index, moved, candidates, coordinates)
-            ok = near.distance2 <= dist**2
-            fitness = float(ok.double().mean())
-            if int(ok.sum()) < MIN_CORRESPONDENCES:
+            fitness, level_rmse, step = _meet(
+                moved, near, (q, n), dist, voxel_size, (degeneracy, sliding)
+            )
+            if step is None:
                 break
-            rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
-            j = near.index[ok]
-            # tiny tensors: extra threads only wait on each other (10x slower)
-            with _threads(1):
-                step = point_to_plane_step(
-                    moved[ok], q[j], n[j], degeneracy=degeneracy, sliding=sliding
-                )
+            rmse = level_rmse
             T = step.T @ T
             rank, conditioning = step.rank, float(step.eigenvalues[0])
             dR = step.T[:3, :3]
@@ -250,15 +251,36 @@ def measure_fit(
         return Refinement(T, 0, 0.0)
     moved = p @ T[:3, :3].T + T[:3, 3]
     near = nearest_of(index, moved, _search(index, moved, SEARCH_REACH[level], None))
+    fitness, rmse, step = _meet(moved, near, (q, n), dist, voxel_size)
+    if step is None:
+        return Refinement(T, 0, fitness)
+    return Refinement(T, step.rank, fitness, rmse, float(step.eigenvalues[0]))
+
+
+def _meet(
+    moved: torch.Tensor,
+    near: Nearest,
+    planes: tuple[torch.Tensor, torch.Tensor],
+    dist: float,
+    voxel_size: float,
+    held: tuple[float, float] = (DEGENERACY, SLIDING),
+) -> tuple[float, float, PlaneStep | None]:
+    """How source points ``moved (K, 3)`` meet their ``near`` target points: the share
+    within ``dist`` (metres; the fitness), their RMS distance in feature voxels, and
+    the point-to-plane step onto the target ``planes`` (points ``(M, 3)``, normals
+    ``(M, 3)``) with ``held = (degeneracy, sliding)``; residual nan and no step where fewer
+    than ``MIN_CORRESPONDENCES`` meet."""
     ok = near.distance2 <= dist**2
     fitness = float(ok.double().mean())
     if int(ok.sum()) < MIN_CORRESPONDENCES:
-        return Refinement(T, 0, fitness)
+        return fitness, float("nan"), None
     rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
     j = near.index[ok]
+    q, n = planes
+    # tiny tensors: extra threads only wait on each other (10x slower)
     with _threads(1):
-        step = point_to_plane_step(moved[ok], q[j], n[j])
-    return Refinement(T, step.rank, fitness, rmse, float(step.eigenvalues[0]))
+        step = point_to_plane_step(moved[ok], q[j], n[j], degeneracy=held[0], sliding=held[1])
+    return fitness, rmse, step
 
 
 #: fewest source points whose search is split in two for ``parallel``
