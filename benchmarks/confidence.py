@@ -23,6 +23,8 @@ and the threshold for at least 99 % precision.
 
 Usage:
     python benchmarks/confidence.py collect --out dev.jsonl [--part I/N]
+    python benchmarks/confidence.py collect --out coarse.jsonl --refine none \
+        --truth-from dev.jsonl
     python benchmarks/confidence.py fit dev.jsonl [more.jsonl ...]
 """
 
@@ -211,12 +213,29 @@ def _refined_truth(registrar, src, tgt, T_gt: np.ndarray) -> np.ndarray:
     return refined.T_tgt_src.numpy()
 
 
-def collect(out: Path, part: tuple[int, int], groups: list[str]) -> None:
+def _truths(paths: list[Path]) -> dict[str, dict]:
+    """The ground truth of every pair of earlier collections, by name."""
+    keys = ("T_gt", "T_gt_refined", "T_gt_refined_error")
+    return {r["name"]: {k: r[k] for k in keys if k in r} for r in _load(paths)}
+
+
+def collect(
+    out: Path,
+    part: tuple[int, int],
+    groups: list[str],
+    refine: str | None = None,
+    truth_from: list[Path] | None = None,
+) -> None:
+    """Register the pairs into ``out``; ``refine="none"``: both features unrefined, FPFH on
+    every pair (the calibration of results that are not refined); ``truth_from``: earlier
+    collections whose ground truth (refined on the data) is reused."""
     from byoc_cli.api import Registrar
 
     done = set()
     if out.exists():
         done = {json.loads(line)["name"] for line in out.read_text().splitlines() if line}
+    truths = _truths(truth_from) if truth_from else {}
+    settings = {} if refine is None else {"refine": refine}
     byoc = Registrar("byoc", device="cpu", fallback=None)
     fpfh = Registrar("fpfh", device="cpu")
     sources = (rgbd_pairs(), fragment_pairs(), variant_pairs(), negative_pairs())
@@ -231,14 +250,18 @@ def collect(out: Path, part: tuple[int, int], groups: list[str]) -> None:
                     continue
                 record = {"name": name, "group": group, "scale": scale}
                 src, tgt = load_src(), load_tgt()
-                record["byoc"] = _result(byoc, src, tgt)
+                record["byoc"] = _result(byoc, src, tgt, **settings)
                 # FPFH with the learned path's refinement: what the fallback runs, which it
                 # does only below the gate (with a margin for the refitted model)
-                if record["byoc"].get("confidence", 0.0) < FALLBACK_MARGIN:
+                if refine is not None:
+                    record["fpfh"] = _result(fpfh, src, tgt, **settings)
+                elif record["byoc"].get("confidence", 0.0) < FALLBACK_MARGIN:
                     record["fpfh"] = _result(fpfh, src, tgt, refine="multiscale")
                 else:
                     record["fpfh"] = {"skipped": f"learned confidence >= {FALLBACK_MARGIN}"}
-                if T_gt is not None:
+                if name in truths:
+                    record.update(truths[name])
+                elif T_gt is not None:
                     T_gt = np.array(T_gt, dtype=np.float64)
                     T_gt[:3, 3] *= scale
                     record["T_gt"] = T_gt.tolist()
@@ -370,12 +393,20 @@ def fit(paths: list[Path], truth: str) -> None:
         print("    (" + ", ".join(f"{v:.4f}" for v in w) + ")")
         for name, value in zip([*FEATURES, "bias"], w, strict=True):
             print(f"    {name:22s} {value:+.4f}")
-    for fallback in (False, True):
-        print(f"\n== {'learned, then FPFH below the threshold' if fallback else 'learned only'}")
-        best = _table(records, ps["byoc"], ps["fpfh"], judged["byoc"], judged["fpfh"], fallback)
+    policies = [
+        ("learned only", "byoc", False),
+        ("learned, then FPFH below the threshold", "byoc", True),
+    ]
+    if all("skipped" not in r["fpfh"] for r in records):  # FPFH ran on every pair
+        policies.append(("FPFH only", "fpfh", False))
+    other = {"byoc": "fpfh", "fpfh": "byoc"}
+    for title, kind, fallback in policies:
+        print(f"\n== {title}")
+        ps_, js_ = (ps[kind], ps[other[kind]]), (judged[kind], judged[other[kind]])
+        best = _table(records, *ps_, *js_, fallback)
         if best is None:
             continue
-        picks = _policy(ps["byoc"], ps["fpfh"], judged["byoc"], judged["fpfh"], best[0], fallback)
+        picks = _policy(*ps_, *js_, best[0], fallback)
         print("reliability at that threshold (bins of 0.1): bin  pairs  predicted  right")
         conf = np.array([x[0] for x in picks if x])
         right = np.array([x[1] for x in picks if x], dtype=np.float64)
@@ -402,13 +433,19 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--out", type=Path, required=True)
     c.add_argument("--part", default="1/1", help="I/N: every N-th pair from the I-th")
     c.add_argument("--groups", nargs="*", default=[], help="only these groups (default: all)")
+    c.add_argument(
+        "--refine", choices=("none",), help="unrefined results of both features, every pair"
+    )
+    c.add_argument(
+        "--truth-from", type=Path, nargs="*", help="reuse these collections' ground truth"
+    )
     f = sub.add_parser("fit")
     f.add_argument("paths", type=Path, nargs="+")
     f.add_argument("--truth", choices=("gt", "refined"), default="refined")
     args = parser.parse_args(argv)
     if args.command == "collect":
         part = tuple(int(x) for x in args.part.split("/"))
-        collect(args.out, part, args.groups)
+        collect(args.out, part, args.groups, args.refine, args.truth_from)
     else:
         fit(args.paths, args.truth)
     return 0

@@ -215,6 +215,44 @@ def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
         byoc_cli.Registrar("fpfh", fallback="fpfh")
 
 
+def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monkeypatch):
+    import byoc_cli.pipeline.scale as scale
+
+    a, b = _cube(1), _moved(_cube(1))[0]
+    registrar = byoc_cli.Registrar(fallback="fpfh", fallback_below=1.0)  # always runs
+    measured = []
+    monkeypatch.setattr(
+        scale,
+        "measure",
+        lambda p, label="cloud", f=scale.measure: measured.append(label) or f(p, label),
+    )
+    choice = registrar.choose_voxel(a, b)  # the pair's voxel, as register-batch reads it
+    assert len(measured) == 2 and choice.keep_of(0) == choice.keep_of(1) == 1.0
+    fa, fb = (
+        registrar.extract_points(p, 1.0, "cloud", choice.voxel_size, choice.refine_voxel)
+        for p in (a, b)
+    )
+    extracted = []
+    real = byoc_cli.Registrar.extract_points
+    monkeypatch.setattr(
+        byoc_cli.Registrar,
+        "extract_points",
+        lambda self, *args, **kw: extracted.append(self.features) or real(self, *args, **kw),
+    )
+    pairs = [(fa, fb), (fb, fa), (fa, fb)]
+    got = [registrar.match(s, t, seed=2) for s, t in pairs]
+    assert [r.fallback is not None for r in got] == [True] * 3
+    assert len(measured) == 4  # each cloud once more, by the fallback, then kept
+    assert extracted.count("fpfh") == 2  # each cloud's FPFH features once
+    assert got[2].T_tgt_src.tobytes() == got[0].T_tgt_src.tobytes()
+    fresh = byoc_cli.Registrar("fpfh")
+    for (s, t), result in zip(pairs[:2], got, strict=False):
+        alone = fresh.register(s.cloud, t.cloud, scale=1.0, refine="multiscale", seed=2)
+        assert result.fallback["confidence"] == alone.confidence
+        if result.fallback["used"]:
+            assert result.T_tgt_src.tobytes() == alone.T_tgt_src.tobytes()
+
+
 def test_features_from_a_share_of_the_points_index_the_whole_cloud():
     pts = _cube(2)
     registrar = byoc_cli.Registrar("fpfh")

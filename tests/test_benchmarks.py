@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -42,3 +43,41 @@ def test_default_weights_takes_a_weights_file_as_a_column(tmp_path):
     result = _default_weights(tmp_path, "--columns", str(weights), "--table-only")
     assert result.returncode == 0, result.stderr
     assert "| w.safetensors |" in result.stdout.splitlines()[0]
+
+
+def _low_overlap(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    script = ROOT / "benchmarks" / "low_overlap.py"
+    return subprocess.run(
+        [sys.executable, str(script), "--out", str(tmp_path / "eval"), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_low_overlap_refuses_an_unknown_lever_or_a_missing_folder_before_running(tmp_path):
+    result = _low_overlap(tmp_path, "--fragments", str(tmp_path), "--levers", "shipped", "magic")
+    assert result.returncode == 2 and "unknown lever 'magic'" in result.stderr
+    result = _low_overlap(tmp_path, "--fragments", str(tmp_path / "absent"))
+    assert result.returncode == 2 and "no such folder" in result.stderr
+    assert not (tmp_path / "eval").exists()
+
+
+def test_low_overlap_table_only_runs_nothing(tmp_path):
+    result = _low_overlap(tmp_path, "--fragments", str(tmp_path), "--levers", "mutual",
+                          "--table-only")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1] == "| mutual | - | - | - | - | - |"
+    assert "running" not in result.stderr
+
+
+def test_low_overlap_reports_of_other_weights_are_named_after_them(tmp_path):
+    report = {"results": {"shipped": {"seconds_per_pair": 1.5}}}
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "lo-shipped-dev-low-coarse.json").write_text(json.dumps(report))
+    args = ["--fragments", str(tmp_path), "--levers", "shipped", "fpfh", "--table-only"]
+    result = _low_overlap(tmp_path, *args, "--coarse", "--weights", str(tmp_path / "lo.pt"))
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[-2].startswith("| lo: shipped |") and lines[-2].endswith("| 1.50 |")
+    assert lines[-1] == "| fpfh | - | - | - | - | - |"  # FPFH reads no weights

@@ -40,19 +40,41 @@ def _python(code: str, **env: str) -> str:
 
 def test_the_entry_point_sets_a_passive_wait_policy_before_torch_is_imported():
     out = _python(
-        "import os, sys; import byoc_cli.cli.main; "
-        "print(os.environ['OMP_WAIT_POLICY'], 'torch' in sys.modules)",
+        "import os, sys; import byoc_cli.cli.main; e = os.environ; "
+        "print(e['OMP_WAIT_POLICY'], e['GOMP_SPINCOUNT'], 'torch' in sys.modules)",
         OMP_WAIT_POLICY="",
+        GOMP_SPINCOUNT="",
     )
-    assert out == "PASSIVE False"
+    assert out == "PASSIVE 1000 False"
 
 
 def test_a_wait_policy_the_user_set_wins():
     out = _python(
-        "import os; import byoc_cli.cli.main; print(os.environ['OMP_WAIT_POLICY'])",
+        "import os; import byoc_cli.cli.main; "
+        "print(os.environ['OMP_WAIT_POLICY'], os.environ.get('GOMP_SPINCOUNT'))",
         OMP_WAIT_POLICY="ACTIVE",
+        GOMP_SPINCOUNT="",
     )
-    assert out == "ACTIVE"
+    assert out == "ACTIVE None"  # no spin count: it would override the user's policy
+
+
+def test_a_spin_count_the_user_set_wins():
+    env = {"GOMP_SPINCOUNT": "0"}
+    assert threads.set_wait_policy(env) == "PASSIVE"
+    assert env == {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "0"}
+
+
+def test_freed_memory_is_kept_unless_the_user_tuned_the_allocator():
+    import ctypes
+
+    glibc = True
+    try:
+        ctypes.CDLL("libc.so.6").mallopt  # noqa: B018
+    except (OSError, AttributeError):
+        glibc = False
+    assert threads.keep_freed_memory({}) is (glibc and sys.platform == "linux")
+    assert threads.keep_freed_memory({"MALLOC_MMAP_THRESHOLD_": "65536"}) is False
+    assert threads.keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=1"}) is False
 
 
 def test_the_api_applies_the_policy_when_it_imports_torch_first():

@@ -177,6 +177,10 @@ class Registrar:
         # clouds prepared for multiscale refinement, most recent last: a cloud refined in
         # several pairs (register-batch) builds its levels, normals and search index once
         self._refine_clouds: OrderedDict[int, tuple[np.ndarray, Any]] = OrderedDict()
+        # per cloud array, the work a pair's fallback does again: the cloud's measured scale
+        # (of the learned registrar) and its features at a voxel (of the fallback's)
+        self._scales = _Memo(self.REFINE_CACHE)
+        self._features_memo = _Memo(self.REFINE_CACHE)
 
     @property
     def weights_sha256(self) -> str | None:
@@ -315,6 +319,18 @@ class Registrar:
         from byoc_cli.pipeline.scale import measure
 
         return measure(torch.from_numpy(points), label)
+
+    def cloud_scale(self, points: np.ndarray, label: str = "cloud"):
+        """:meth:`measure` of ``points (N, 3)``, measured once per array (told by identity:
+        arrays the registrar read itself, never changed) while it is among the most recently
+        measured (a pair's fallback reads the same clouds' scale, a batch's pairs share
+        clouds).
+
+        Raises:
+            RegistrationError: too few distinct points to read a scale from.
+        """
+        scale = self._scales.get(points, None, lambda: self.measure(points, label))
+        return scale._replace(label=label)
 
     def voxel_for(self, *scales: Any):
         r"""The auto voxel of clouds measured with :meth:`measure` (a pair shares one)."""
@@ -489,8 +505,14 @@ class Registrar:
                 voxel = "auto" if self.auto_voxel else 2.0 * self.voxel_size
                 self._fallback_registrar = Registrar("fpfh", voxel_size=voxel, threads=1)
         try:
-            second = self._fallback_registrar.register(
-                src.cloud, tgt.cloud, scale=1.0, refine="multiscale", seed=seed
+            scales = None
+            if self._fallback_registrar.auto_voxel:  # the scales the learned choice read
+                scales = [
+                    self.cloud_scale(f.cloud, label)
+                    for f, label in ((src, "source"), (tgt, "target"))
+                ]
+            second = self._fallback_registrar._register_clouds(
+                (src.cloud, tgt.cloud), scales, refine="multiscale", seed=seed
             )
         except RegistrationError:
             second = None
@@ -524,6 +546,34 @@ class Registrar:
         return (
             self.extract_points(src.cloud, src.scale, "source", *voxel, choice.keep_of(0)),
             self.extract_points(tgt.cloud, tgt.scale, "target", *voxel, choice.keep_of(1)),
+        )
+
+    def _register_clouds(
+        self, clouds: tuple[np.ndarray, np.ndarray], scales: list | None, **settings: Any
+    ) -> Registration:
+        """What :meth:`register` gives for two arrays already in metres (``scale=1.0``),
+        from their :meth:`cloud_scale` ``scales`` (auto voxel; labelled ``"source"`` and
+        ``"target"``) and the features of each array
+        at its voxel computed once while among the most recent (a fallback registers the
+        same clouds in many pairs of a batch); the same result, bytes and all."""
+        start = time.perf_counter()
+        names = ("source", "target")
+        choice, voxels = None, [(None, None, 1.0)] * 2
+        if self.auto_voxel:
+            choice = self.voxel_for(*scales)
+            voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
+        src, tgt = (
+            self._features_memo.get(
+                points,
+                voxels[k],
+                lambda points=points, k=k: self.extract_points(points, 1.0, names[k], *voxels[k]),
+            )
+            for k, points in enumerate(clouds)
+        )
+        result = self.match(src, tgt, **settings)
+        return result._replace(
+            timings={**result.timings, "total": time.perf_counter() - start},
+            voxel_choice=None if choice is None else choice.as_dict(),
         )
 
     def register(
@@ -596,7 +646,7 @@ class Registrar:
         start = time.perf_counter()
         points, name = self.load(cloud, label, scale, **load)
         loaded = time.perf_counter()
-        size = self.measure(points, name) if self.auto_voxel else None
+        size = self.cloud_scale(points, name) if self.auto_voxel else None
         return points, name, size, {"load": loaded - start, "scale": time.perf_counter() - loaded}
 
     def _prepared_features(
@@ -620,6 +670,45 @@ class Registrar:
             self.prepare_refinement(feats, True, False)
         done = time.perf_counter()
         return feats, {"features": extracted - start, "prepare": done - extracted}
+
+
+class _Memo:
+    """Values of ``(array, key)`` computed once while among the ``size`` most recently used
+    (least recently used dropped first); an array is told by its identity (kept alive with
+    its value, so that its id is not reused). A thread asking for a value another thread
+    computes waits for it; a failure is not kept."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[tuple[int, Any], tuple[np.ndarray, Future]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, array: np.ndarray, key: Any, compute) -> Any:
+        """The value of ``(array, key)``; ``compute()`` makes it on a miss."""
+        item = (id(array), key)
+        with self._lock:
+            hit = self._items.get(item)
+            if hit is not None and hit[0] is array:
+                self._items.move_to_end(item)
+                future = hit[1]
+            else:
+                future, mine = None, Future()
+                self._items[item] = (array, mine)
+                self._items.move_to_end(item)
+                while len(self._items) > self.size:
+                    self._items.popitem(last=False)
+        if future is not None:
+            return future.result()
+        try:
+            value = compute()
+        except BaseException as exc:
+            mine.set_exception(exc)
+            with self._lock:
+                if self._items.get(item, (None, None))[1] is mine:
+                    del self._items[item]
+            raise
+        mine.set_result(value)
+        return value
 
 
 def _keep_subset(n: int, keep: float) -> np.ndarray | None:

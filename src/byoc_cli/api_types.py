@@ -29,7 +29,10 @@ class Features(NamedTuple):
         features: ``"byoc"`` or ``"fpfh"``.
         weights_sha256: SHA-256 of the weights file (None for fpfh).
         cloud: ``(N, 3)`` float64 input points in metres, which ``"multiscale"``
-            refinement runs on; None (features read back from a file): the kept points.
+            refinement runs on; None (features read back from a file): the kept points. A
+            :class:`~byoc_cli.api.Registrar` keeps what it builds from this array (refinement
+            levels, the fallback's features) by its identity for later pairs: change a copy,
+            not the array.
         refine_voxel: the voxel the refinement levels scale with (None: ``voxel_size``);
             the auto voxel keeps it below a ``voxel_size`` raised for sparse clouds.
     """

@@ -98,20 +98,43 @@ def _plane(n: int, seed: int, size: float = 3.0) -> np.ndarray:
     return np.column_stack([xy, 0.002 * rng.standard_normal(n)])
 
 
+def _cannot_be_right(case: str, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A pair with no right transform."""
+    if case == "noise onto a cloud":
+        return _noise(20000, 1), tgt
+    if case == "noise onto noise":
+        return _noise(20000, 2), _noise(20000, 3)
+    if case == "a plane onto a plane":
+        return _plane(20000, 4), _plane(20000, 5)
+    left, right = np.quantile(tgt[:, 0], [0.4, 0.6])  # the two ends of one scan
+    return tgt[tgt[:, 0] < left], tgt[tgt[:, 0] > right]
+
+
 @pytest.mark.parametrize(
     "case", ["noise onto a cloud", "noise onto noise", "a plane onto a plane", "no overlap"]
 )
 def test_what_cannot_be_registered_never_exits_0(demo, tmp_path, case):
-    _, tgt, _ = demo
-    left, right = np.quantile(tgt[:, 0], [0.4, 0.6])  # the two ends of one scan
-    pairs = {
-        "noise onto a cloud": (_noise(20000, 1), tgt),
-        "noise onto noise": (_noise(20000, 2), _noise(20000, 3)),
-        "a plane onto a plane": (_plane(20000, 4), _plane(20000, 5)),
-        "no overlap": (tgt[tgt[:, 0] < left], tgt[tgt[:, 0] > right]),
-    }
-    result, report = _register(tmp_path, *pairs[case])
+    result, report = _register(tmp_path, *_cannot_be_right(case, demo[1]))
     assert result.exit_code in (1, 3), (result.exit_code, result.output)
     if result.exit_code == 3:
         assert report["confidence"] < report["min_confidence"]
         assert "likely wrong" in result.stderr
+
+
+@pytest.mark.parametrize("flags", [("--refine", "none"), ("--features", "fpfh")])
+@pytest.mark.parametrize("case", ["a plane onto a plane", "no overlap"])
+def test_unrefined_results_that_cannot_be_right_never_exit_0(demo, tmp_path, case, flags):
+    # without the refinement the fit cues are measured at the returned transform and read by
+    # the unrefined model (they once read as a perfect fit: exit 0)
+    result, report = _register(tmp_path, *_cannot_be_right(case, demo[1]), *flags)
+    assert result.exit_code == 3, (result.exit_code, result.output)
+    assert report["cues"]["fitness"] < 1.0 and report["cues"]["rmse"] > 0.0
+
+
+def test_an_unrefined_right_result_passes(demo, tmp_path):
+    src, tgt, T_gt = demo
+    result, report = _register(tmp_path, src, tgt, "--features", "fpfh")
+    assert result.exit_code == 0, result.output
+    rot, trans = _errors(read_transform(tmp_path / "T.txt"), T_gt)
+    assert rot < 5.0 and trans < 0.10
+    assert report["refine"] == "none" and 0.45 <= report["confidence"] < 1.0

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from byoc_cli.cli.main import cli
-from byoc_cli.io import read_gt_info, read_gt_log
+from byoc_cli.io import read_gt_info, read_gt_log, read_gt_overlap
 from tests.pipeline import _synthetic as syn
 
 FAST = ["--frames-per-fragment", "5", "--tsdf-voxel", "0.02", "--sdf-trunc", "0.06"]
@@ -98,6 +98,10 @@ def test_missing_folder_short_sequence_and_corrupt_frame(room, tmp_path):
         (["--scene", "a/b"], "--scene"),
         (["--sdf-trunc", "0.01"], "--sdf-trunc"),
         (["--min-overlap", "1"], "--min-overlap"),
+        (["--max-overlap", "0"], "--max-overlap"),
+        (["--max-overlap", "1.5"], "--max-overlap"),
+        (["--min-overlap", "0.3", "--max-overlap", "0.3"], "--max-overlap"),
+        (["--min-overlap", "0.5", "--max-overlap", "0.2"], "--max-overlap"),
         (["--frames-per-fragment", "0"], "--frames-per-fragment"),
     ],
 )
@@ -119,3 +123,91 @@ def test_eval_fmr_reads_the_made_benchmark(room, tmp_path):
         == report["num_pairs_with_info"]
         == len(read_gt_log(out / "room-seq-01-evaluation" / "gt.log"))
     )
+
+
+def _overlaps(out: Path, scene: str = "room-seq-01") -> dict[tuple[int, int], float]:
+    return read_gt_overlap(out / f"{scene}-evaluation" / "gt_overlap.log")
+
+
+def test_an_overlap_band_splits_gt_log_like_3dmatch_and_3dlomatch(room, tmp_path):
+    """Every pair above 0, then the low band (0, x] and the high band (x, 1] with x between two
+    measured overlaps: the two gt.logs split the first one exactly, each pair with its matrix."""
+    every = tmp_path / "every"
+    result = _invoke(
+        ["make-fragments", "--rgbd-dir", room, "--out", every, *FAST, "--min-overlap", "0"]
+    )
+    assert result.exit_code == 0, result.output
+    overlaps = _overlaps(every)
+    values = sorted(overlaps.values())
+    assert len(values) == 3 and values[0] < values[-1]  # 3 fragments, all overlapping
+    cut = (values[0] + values[1]) / 2
+    low, high = tmp_path / "low", tmp_path / "high"
+    result = _invoke(
+        ["make-fragments", "--rgbd-dir", room, "--out", low, *FAST, "--min-overlap", "0",
+         "--max-overlap", f"{cut}"]
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert f"1 pairs with overlap in (0, {cut:g}]" in result.stdout
+    result = _invoke(
+        ["make-fragments", "--rgbd-dir", room, "--out", high, *FAST, "--min-overlap", f"{cut}"]
+    )
+    assert result.exit_code == 0, result.output
+    assert f"2 pairs with overlap > {cut:g}" in result.stdout
+    assert all(v <= cut for v in _overlaps(low).values())
+    assert all(v > cut for v in _overlaps(high).values())
+    assert _overlaps(low) | _overlaps(high) == overlaps
+    every_log = {
+        (r.i, r.j): r.T_tgt_src for r in read_gt_log(every / "room-seq-01-evaluation" / "gt.log")
+    }
+    for part in (low, high):
+        for r in read_gt_log(part / "room-seq-01-evaluation" / "gt.log"):
+            assert (r.T_tgt_src == every_log[(r.i, r.j)]).all()
+    manifest = json.loads((low / "make-fragments.json").read_text())
+    assert manifest["settings"]["max_overlap"] == pytest.approx(cut)
+
+
+def test_eval_fmr_reports_the_overlap_bands_side_by_side(room, tmp_path):
+    out = tmp_path / "bench"
+    result = _invoke(
+        ["make-fragments", "--rgbd-dir", room, "--out", out, *FAST, "--min-overlap", "0"]
+    )
+    assert result.exit_code == 0, result.output
+    values = sorted(_overlaps(out).values())
+    cut = (values[0] + values[1]) / 2
+    # 10-30 %-style low band (the lowest pair) and high band (the other two)
+    edges = f"{(values[0] + 0) / 2:.6f},{cut:.6f},1"
+    args = ["eval-fmr", out, "--method", "identity", "--overlap-bands", edges]
+    result = _invoke([*args, "--json", tmp_path / "r.json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert [b["num_pairs"] for b in report["bands"]] == [1, 2]
+    assert report["num_pairs"] == 3 and report["num_pairs_outside_bands"] == 0
+    assert report["settings"]["overlap_bands"] == [
+        [float(e) for e in edges.split(",")[:2]],
+        [float(e) for e in edges.split(",")[1:]],
+    ]
+    low_label, high_label = (b["label"] for b in report["bands"])
+    assert f"identity {low_label}" in result.stderr and f"identity {high_label}" in result.stderr
+    # a band above the lowest pair leaves it out (counted), the others are evaluated
+    result = _invoke(["eval-fmr", out, "--method", "identity", "--overlap-bands",
+                      f"{cut:.6f},1", "--json", "-", "--quiet"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["num_pairs"] == 2 and report["num_pairs_outside_bands"] == 1
+    assert report["bands"][0]["results"]["identity"]["num_pairs"] == 2
+
+
+@pytest.mark.parametrize("edges", ["0.3", "0.3,0.1", "a,b", "0.1,2"])
+def test_eval_fmr_bad_overlap_bands_exit_2(room, tmp_path, edges):
+    result = _invoke(["eval-fmr", tmp_path, "--method", "identity", "--overlap-bands", edges])
+    assert result.exit_code == 2 and "--overlap-bands" in result.stderr, result.stderr
+
+
+def test_eval_fmr_overlap_bands_need_gt_overlap_log(room, tmp_path):
+    out = tmp_path / "bench"
+    assert _invoke(["make-fragments", "--rgbd-dir", room, "--out", out, *FAST]).exit_code == 0
+    gt_overlap = out / "room-seq-01-evaluation" / "gt_overlap.log"
+    gt_overlap.unlink()
+    result = _invoke(["eval-fmr", out, "--method", "identity", "--overlap-bands", "0.1,0.3,1"])
+    assert result.exit_code == 1
+    _one_error_line(result, str(gt_overlap.parent), "no gt_overlap.log", "--overlap-bands")

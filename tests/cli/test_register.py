@@ -434,6 +434,9 @@ def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights,
     )
     assert figures in lines[0] and lines[0].endswith(" s")
     assert res.stdout == ""
+    # the refinement's restarts ran, and the report says how they agreed
+    assert {"restart_return", "restart_gain"} <= report["cues"].keys()
+    assert 0.0 <= report["cues"]["restart_return"] <= 1.0 and "restarts" in report["timings_s"]
     # -q before or after the command's name silences it; stdout keeps only the matrix
     for quiet in (["-q", *args, "-o", "-"], [*args, "-o", "-", "-q"]):
         res = runner.invoke(cli, quiet)

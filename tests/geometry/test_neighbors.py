@@ -15,6 +15,9 @@ from byoc_cli.geometry.neighbors import (
     DENSE_CELLS,
     CellIndex,
     DenseCells,
+    Nearest,
+    _distance2,
+    candidate_coordinates,
     cell_keys,
     nearest_candidates,
     nearest_of,
@@ -184,6 +187,32 @@ def test_around_holds_every_point_within_a_cell_and_nearest_is_exact(averaged, s
     close = best < size
     assert torch.equal(near.index[close], arg[close])
     assert torch.allclose(near.distance2[close].double(), best[close] ** 2, atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_nearest_of_moved_queries_with_their_candidates_coordinates_is_the_same(seed):
+    index = CellIndex(voxel_average(_cloud(3000, seed), 0.05), 0.05)
+    queries = _cloud(300, seed + 1, scale=0.32)
+    candidates = nearest_candidates(index, queries, 8)
+    candidates[::7, 3:] = -1  # fewer candidates for some
+    coordinates = candidate_coordinates(index, candidates)
+    for shift in (0.0, 0.004, -0.01):  # queries that moved less than a cell since the search
+        moved = queries + shift
+        alone, given = (
+            nearest_of(index, moved, candidates),
+            _distance2_nearest(index, moved, candidates),
+        )
+        again = nearest_of(index, moved, candidates, coordinates)
+        for got in (alone, again):
+            assert torch.equal(got.index, given.index)
+            assert got.distance2.numpy().tobytes() == given.distance2.numpy().tobytes()
+
+
+def _distance2_nearest(index, queries, candidates):
+    """nearest_of as it was written before the coordinates could be given."""
+    safe = torch.where(candidates < 0, index.none, candidates)
+    best, pick = _distance2(index, safe, queries).min(dim=1)
+    return Nearest(candidates.gather(1, pick[:, None])[:, 0], best)
 
 
 def test_nearest_of_with_no_candidates():

@@ -49,7 +49,8 @@ def test_sigmoid_does_not_overflow():
 
 
 def test_the_shipped_models_have_a_weight_per_feature_and_a_default_in_range():
-    assert set(MODELS) == {"byoc", "fpfh"} and MODELS["byoc"] == COEFFICIENTS
+    assert set(MODELS) == {"byoc", "fpfh", "byoc-unrefined", "fpfh-unrefined"}
+    assert MODELS["byoc"] == COEFFICIENTS
     for coefficients in MODELS.values():
         assert len(coefficients) == len(FEATURES) + 1
         assert any(c != 0 for c in coefficients)  # fitted, not the scaffold's zeros

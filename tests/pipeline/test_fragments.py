@@ -237,6 +237,16 @@ def test_a_stride_makes_overlapping_windows(scene, tmp_path):
     assert (0, 1) in [(p.i, p.j) for p in result.pairs]
 
 
+@pytest.mark.parametrize(("low", "high"), [(0.3, 0.3), (0.3, 0.1), (0.1, 1.5)])
+def test_an_empty_overlap_band_is_refused_before_any_work(scene, tmp_path, low, high):
+    with pytest.raises(ValueError, match="max_overlap must lie in"):
+        make_fragment_benchmark(
+            scene["sequence"], tmp_path / "b", scene="room", frames_per_fragment=5,
+            min_overlap=low, max_overlap=high,
+        )  # fmt: skip
+    assert not (tmp_path / "b").exists()
+
+
 def test_nonempty_out_dir_is_refused_and_left_alone(scene, tmp_path):
     out = tmp_path / "taken"
     out.mkdir()

@@ -14,7 +14,14 @@ from byoc_cli.geometry.transforms import (
     make_transform,
 )
 from byoc_cli.pipeline import refine as refine_module
-from byoc_cli.pipeline.refine import RefineCloud, refine_multiscale
+from byoc_cli.pipeline.refine import (
+    RefineCloud,
+    Restarts,
+    measure_fit,
+    refine_multiscale,
+    restart_refinement,
+    restart_starts,
+)
 from byoc_cli.threads import side_by_side, worker_pool
 
 
@@ -169,3 +176,67 @@ def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(ge
     assert np.linalg.norm(fit.information - theirs) < 1e-3 * np.linalg.norm(theirs)
     # a cloud without points at a level is not enough for a pair
     assert not refine_module.enough_points(refine_module.pair_cloud(src[:5], 0.02))
+
+
+def test_restarts_come_back_to_a_right_result_of_distinct_geometry(generator):
+    T_true = _motion([0.1, -0.2, 0.15], [0.1, 0.2, -0.05])
+    src, tgt = _room_pair(40_000, T_true, generator)
+    restarts = restart_refinement(src, tgt, T_true, voxel_size=0.025)
+    assert restarts.ends.shape == (7, 4, 4) and restarts.fitness.shape == (7,)
+    assert restarts.returned(0) == 1.0
+    assert restarts.gain(0) == -1.0  # no end elsewhere
+    assert _pose_error(restarts.ends[restarts.best()], T_true)[0] < 0.5
+
+
+def test_restarts_on_a_sphere_find_no_basin(generator):
+    # every turn about the centre fits a sphere as well: nothing brings a restart back
+    points = torch.randn(20_000, 3, generator=generator, dtype=torch.float64)
+    sphere = points / points.norm(dim=1, keepdim=True)
+    restarts = restart_refinement(sphere, sphere.clone(), torch.eye(4, dtype=torch.float64), 0.05)
+    assert restarts.returned(0) == 0.0
+    assert abs(restarts.gain(0)) < 0.05
+
+
+def test_restart_starts_turn_about_the_centroid():
+    T = _motion([0.2, 0.1, -0.3], [1.0, -2.0, 0.5])
+    centroid = torch.tensor([0.3, -0.4, 2.0], dtype=torch.float64)
+    starts = restart_starts(T, centroid)
+    assert torch.equal(starts[0], T)
+    moved = apply_transform(starts, centroid.expand(7, 1, 3))
+    assert torch.allclose(moved, apply_transform(T, centroid[None]).expand(7, 1, 3), atol=1e-12)
+    for k in range(1, 7):
+        assert _pose_error(starts[k], T)[0] == pytest.approx(refine_module.RESTART_DEG)
+
+
+def test_restart_bookkeeping_places_gains_and_returns():
+    eye = torch.eye(4, dtype=torch.float64)
+    far = _motion([0.0, 0.0, math.radians(10.0)], [0.0, 0.0, 0.0])
+    near = _motion([0.0, 0.0, math.radians(0.5)], [0.01, 0.0, 0.0])
+    restarts = Restarts(
+        torch.stack([eye, near, far, far, near]), torch.tensor([0.5, 0.52, 0.6, 0.6, 0.5]), 0.025
+    )
+    assert restarts.same_place(0).tolist() == [True, True, False, False, True]
+    assert restarts.best() == 2  # the first of the ties
+    assert restarts.gain(0) == pytest.approx(0.1) and restarts.gain(2) == pytest.approx(-0.08)
+    assert restarts.returned(0) == 0.5 and restarts.returned(2) == 0.5
+
+
+def test_measure_fit_judges_a_transform_without_moving_it(generator):
+    T_true = _motion([0.1, 0.3, -0.2], [0.2, -0.1, 0.05])
+    src, tgt = _room_pair(60_000, T_true, generator)
+    right = measure_fit(src, tgt, T_true, voxel_size=0.025)
+    off = _motion([0.0, 0.0, math.radians(30.0)], [0.5, 0.0, 0.0]) @ T_true
+    wrong = measure_fit(src, tgt, off, voxel_size=0.025)
+    assert torch.equal(right.T_tgt_src, T_true) and torch.equal(wrong.T_tgt_src, off)
+    assert right.fitness > 0.5 and right.rank == 6 and right.rmse < 0.5  # 2.5 cm sampling
+    assert wrong.fitness < 0.5 * right.fitness
+    # what the refinement reports at its own end, where it has converged from the truth
+    refined = refine_multiscale(src, tgt, T_true, voxel_size=0.025)
+    again = measure_fit(src, tgt, refined.T_tgt_src, voxel_size=0.025)
+    assert again.fitness == pytest.approx(refined.fitness, abs=0.01)
+
+
+def test_measure_fit_of_clouds_that_do_not_meet_is_zero():
+    a = torch.rand(500, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    out = measure_fit(a, a + 100.0, torch.eye(4, dtype=torch.float64), voxel_size=0.025)
+    assert out.fitness == 0.0 and out.rank == 0

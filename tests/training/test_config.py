@@ -108,3 +108,17 @@ def test_json_round_trip(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"config": c.to_dict()}))
     assert config_from_json(tmp_path / "config.json") == c
     assert list(c.to_dict()) == config_keys()
+
+
+def test_pair_min_fitness_from_a_file_reaches_the_self_posing(tmp_path):
+    from byoc_cli.training.self_posed import pseudo_config
+
+    path = tmp_path / "c.toml"
+    path.write_text("pair_min_fitness = 0.15\npair_gaps = [10, 60, 120]\n")
+    config = TrainConfig(**load_config_file(path))
+    posing = pseudo_config(config)
+    assert (posing.min_fitness, posing.gaps) == (0.15, (10, 60, 120))
+    assert pseudo_config(TrainConfig()).min_fitness == 0.3  # the shipped recipe's
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="pair_min_fitness must be in"):
+            TrainConfig(pair_min_fitness=bad)

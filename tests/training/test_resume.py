@@ -113,7 +113,7 @@ def test_sigkill_then_resume_is_bit_identical(shared_data, tmp_path):
         "--variant",
         "byoc-rot",
         "--steps",
-        "6",
+        "4",
         "--batch-size",
         "2",
         "--view-spacing",
@@ -150,4 +150,4 @@ def test_sigkill_then_resume_is_bit_identical(shared_data, tmp_path):
     assert resumed.returncode == 0, err.decode()
     _assert_identical(tmp_path / "ref" / "weights.safetensors", run / "weights.safetensors")
     steps = [r["step"] for r in _records(run)]
-    assert steps == sorted(set(steps)) and steps[-1] == 6
+    assert steps == sorted(set(steps)) and steps[-1] == 4

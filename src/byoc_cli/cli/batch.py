@@ -328,7 +328,7 @@ class _PairRunner:
             load = dict(self.load)
             points, name = self.registrar.load(path, label, load.pop("scale"), **load)
             auto = self.registrar.auto_voxel
-            return points, name, self.registrar.measure(points, name) if auto else None
+            return points, name, self.registrar.cloud_scale(points, name) if auto else None
 
         cloud, cached = self.cache.get(("cloud", path.resolve()), read)
         timings["load"] = timings.get("load", 0.0) + (

@@ -70,6 +70,14 @@ __all__ = ["DEFAULT_METHODS", "eval_fmr", "eval_pairs", "expand_method_args"]
     default=200,
     help="Ratio-test correspondences per direction for the 'corr' FMR.",
 )
+@click.option(
+    "--overlap-bands",
+    metavar="EDGES",
+    default=None,
+    help="Report the pairs by overlap band, side by side: '0.1,0.3,1' gives 3DLoMatch's "
+    "(10-30 %] and 3DMatch's (30-100 %] columns per method in one run. Overlaps come from "
+    "gt_overlap.log (byoc make-fragments writes it); pairs in no band are left out.",
+)
 @eval_options
 @handle_errors
 def eval_fmr(
@@ -96,10 +104,14 @@ def eval_fmr(
 
     protocol = {name: common.pop(name) for name in ("num_samples", "tau1", "tau2", "top_k")}
     num_samples = protocol["num_samples"]
+    bands = _parse_bands(common.pop("overlap_bands"))
     run = EvalRun(**common)
     run.start(input_dirs=(root, gt_dir))
     found = _select_scenes(discover_benchmark(root, gt_dir), scenes)
     pair_set = load_benchmark_pairs(found, run.limit, allow_missing)
+    num_outside = 0
+    if bands:
+        pair_set, num_outside = _pairs_in_bands(pair_set, bands)
     if not pair_set.pairs:
         raise DatasetError(
             root,
@@ -116,13 +128,62 @@ def eval_fmr(
         "scenes_selected": list(scenes) or None,
         "limit_per_scene": run.limit,
         "allow_missing": allow_missing,
+        "overlap_bands": [list(b) for b in bands] or None,
         **run.settings(),
     }
-    report = fmr_report(result, pair_set, methods, config, settings)
+    report = fmr_report(result, pair_set, methods, config, settings, bands, num_outside)
     run.write(report, plot_fmr)
     if not run.quiet:
         columns, rows = fmr_table(report)
-        print_table(f"eval-fmr {root}", columns, rows, _fmr_notes(methods, pair_set, result))
+        notes = _fmr_notes(methods, pair_set, result)
+        if bands:
+            notes.insert(
+                -1,
+                "overlap bands from gt_overlap.log: "
+                + ", ".join(
+                    f"{b.label} {n['num_pairs']} pairs"
+                    for b, n in zip(bands, report["bands"], strict=True)
+                )
+                + f"; {num_outside} pair(s) in no band left out",
+            )
+        print_table(f"eval-fmr {root}", columns, rows, notes)
+
+
+def _parse_bands(text: str | None) -> list:
+    """``--overlap-bands`` as :class:`~byoc_cli.evaluation.bands.OverlapBand` s (none: [])."""
+    from byoc_cli.evaluation.bands import parse_overlap_bands
+
+    if text is None:
+        return []
+    try:
+        return parse_overlap_bands(text)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="'--overlap-bands'") from None
+
+
+def _pairs_in_bands(pair_set, bands) -> tuple[Any, int]:
+    """``pair_set`` reduced to the pairs of some band, and how many were left out.
+
+    Raises:
+        DatasetError: a pair has no overlap (its scene has no gt_overlap.log, or the file
+            lacks the pair).
+    """
+    from byoc_cli.errors import DatasetError
+    from byoc_cli.evaluation.bands import split_by_band
+
+    for pair in pair_set.pairs:
+        if pair.overlap is None:
+            scene = next(s for s in pair_set.scenes if s.name == pair.scene)
+            where = scene.gt_overlap or scene.gt_log.parent
+            what = "lacks pair" if scene.gt_overlap else "no gt_overlap.log for pair"
+            raise DatasetError(
+                where,
+                f"{what} {pair.i} {pair.j}: --overlap-bands needs every pair's overlap "
+                "(pass --gt-dir with the benchmark's ground truth, or drop --overlap-bands)",
+            )
+    members, outside = split_by_band([p.overlap for p in pair_set.pairs], bands)
+    keep = sorted(k for band in members for k in band)
+    return pair_set._replace(pairs=[pair_set.pairs[k] for k in keep]), len(outside)
 
 
 def _select_scenes(found: list, scenes: tuple[str, ...]) -> list:

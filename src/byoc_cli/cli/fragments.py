@@ -104,7 +104,15 @@ def _load_sequence(rgbd_dir: Path, intrinsics: Path | None, depth_scale: float |
     type=finite_float(0, 1, max_open=True),
     default=0.3,
     show_default=True,
-    help="gt.log keeps the pairs whose overlap is above this.",
+    help="gt.log keeps the pairs whose overlap is above this (3DLoMatch: 0.1).",
+)
+@click.option(
+    "--max-overlap",
+    type=finite_float(0, 1, min_open=True),
+    default=1.0,
+    show_default=True,
+    help="... and at most this: '--min-overlap 0.1 --max-overlap 0.3' is a 3DLoMatch-style "
+    "low-overlap benchmark; 1 keeps every pair above --min-overlap.",
 )
 @click.option(
     "--intrinsics",
@@ -132,18 +140,16 @@ def make_fragments(
     and write the 3DMatch benchmark layout with gt.log, gt.info and gt_overlap.log.
 
     Each fragment is in the camera frame of its first frame; gt.log lists the pairs i < j
-    whose overlap exceeds --min-overlap, with the matrix that maps fragment j into i.
+    whose overlap exceeds --min-overlap and is at most --max-overlap, with the matrix that
+    maps fragment j into i.
     Progress goes to stderr, a one-line summary to stdout.
     """
     from byoc_cli.pipeline.fragments import FragmentSettings, make_fragment_benchmark
 
     fusion["voxel_size"] = fusion.pop("tsdf_voxel")
     settings = FragmentSettings(**fusion)
-    tsdf_voxel, sdf_trunc, min_overlap = (
-        settings.voxel_size,
-        settings.sdf_trunc,
-        settings.min_overlap,
-    )
+    tsdf_voxel, sdf_trunc = settings.voxel_size, settings.sdf_trunc
+    min_overlap, max_overlap = settings.min_overlap, settings.max_overlap
     if sdf_trunc <= tsdf_voxel:
         raise click.BadParameter(
             f"must exceed --tsdf-voxel ({tsdf_voxel})", param_hint="'--sdf-trunc'"
@@ -153,6 +159,10 @@ def make_fragments(
             f"must be at most {limits.MAX_TRUNC_VOXELS:g} times --tsdf-voxel "
             f"({limits.MAX_TRUNC_VOXELS * tsdf_voxel:g} m): the memory grows with it",
             param_hint="'--sdf-trunc'",
+        )
+    if max_overlap <= min_overlap:
+        raise click.BadParameter(
+            f"must exceed --min-overlap ({min_overlap:g})", param_hint="'--max-overlap'"
         )
     start = time.perf_counter()
     sequence = _load_sequence(rgbd_dir, intrinsics, depth_scale)
@@ -179,8 +189,9 @@ def make_fragments(
         if "scene name" in str(exc):
             raise click.BadParameter(str(exc), param_hint="'--scene'") from exc
         raise CliError(str(exc)) from exc
+    band = f"> {min_overlap:g}" if max_overlap >= 1 else f"in ({min_overlap:g}, {max_overlap:g}]"
     click.echo(
         f"{result.out_dir}: scene {result.scene}, {len(result.fragments)} fragments, "
-        f"{len(result.pairs)} pairs with overlap > {min_overlap:g} "
+        f"{len(result.pairs)} pairs with overlap {band} "
         f"(of {result.num_candidate_pairs}), {time.perf_counter() - start:.0f} s"
     )

@@ -8,10 +8,11 @@ import click
 
 from byoc_cli import __version__
 from byoc_cli.cli.options import verbosity_options
-from byoc_cli.threads import apply_thread_policy, set_wait_policy
+from byoc_cli.threads import apply_thread_policy, keep_freed_memory, set_wait_policy
 
 # OpenMP reads its wait policy once, when torch first loads it: before any command runs
 set_wait_policy()
+keep_freed_memory()
 
 # subcommand name -> (module, attribute); imported only when the command runs or --help asks
 _COMMANDS = {
@@ -57,8 +58,8 @@ threads_option = click.option(
     expose_value=False,
     callback=_thread_policy,
     help="Threads for the numeric work [default: OMP_NUM_THREADS, else the cores this "
-    "process may use: CPU affinity and cgroup quota]. Idle threads sleep "
-    "(OMP_WAIT_POLICY=PASSIVE unless set).",
+    "process may use: CPU affinity and cgroup quota]. Idle threads sleep after a short "
+    "spin (OMP_WAIT_POLICY=PASSIVE, GOMP_SPINCOUNT=1000, unless set).",
 )
 
 

@@ -93,11 +93,39 @@ def clean_json(value: Any) -> Any:
 
 
 def fmr_report(
-    result, pair_set, methods: Sequence, config, settings: dict[str, Any]
+    result,
+    pair_set,
+    methods: Sequence,
+    config,
+    settings: dict[str, Any],
+    bands: Sequence = (),
+    num_outside_bands: int = 0,
 ) -> dict[str, Any]:
-    """The ``eval-fmr`` JSON report (see the module docstring)."""
+    """The ``eval-fmr`` JSON report (see the module docstring).
+
+    ``bands``: :class:`~byoc_cli.evaluation.bands.OverlapBand` s; each gets the summaries of
+    its pairs under ``bands`` (``label``, ``min_overlap``, ``max_overlap``, ``num_pairs``,
+    ``results``), and the table shows them side by side.
+    """
     from dataclasses import asdict
 
+    from byoc_cli.evaluation.bands import split_by_band
+    from byoc_cli.evaluation.fmr_summary import summarize_fmr
+
+    by_band = []
+    if bands:
+        members, _ = split_by_band([r["overlap"] for r in result.records], bands)
+        for band, indices in zip(bands, members, strict=True):
+            records = [result.records[k] for k in indices]
+            by_band.append(
+                {
+                    "label": band.label,
+                    "min_overlap": band.low,
+                    "max_overlap": band.high,
+                    "num_pairs": len(records),
+                    "results": summarize_fmr(records, methods, config),
+                }
+            )
     return clean_json(
         {
             "command": "eval-fmr",
@@ -123,6 +151,8 @@ def fmr_report(
             "missing_fragments": pair_set.missing_fragments,
             "skipped_pairs": [list(p) for p in pair_set.skipped_pairs],
             "results": result.summaries,
+            "bands": by_band or None,
+            "num_pairs_outside_bands": num_outside_bands if bands else None,
             "cache": {"hits": result.cache_hits, "misses": result.cache_misses},
             "seconds": result.seconds,
             "pairs": result.records,
@@ -167,12 +197,19 @@ def _num(value: float | None, spec: str = ".2f") -> str:
 
 
 def fmr_table(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """``(column names, rows)`` of the eval-fmr table: one column per method.
+    """``(column names, rows)`` of the eval-fmr table: one column per method, or per
+    overlap band and method (``byoc 10-30%``) when the report has ``bands``, band by band.
 
     Recalls and ratios in percent; "-" where a figure does not apply (no features, no
     gt.info).
     """
     results = report["results"]
+    if report.get("bands"):
+        results = {
+            f"{name} {band['label']}": summary
+            for band in report["bands"]
+            for name, summary in band["results"].items()
+        }
     names = list(results)
     rows: list[list[str]] = [["pairs", *[str(results[n]["num_pairs"]) for n in names]]]
 

@@ -281,12 +281,31 @@ class Nearest(NamedTuple):
     distance2: torch.Tensor
 
 
-def nearest_of(index: CellIndex, queries: torch.Tensor, candidates: torch.Tensor) -> Nearest:
+def nearest_of(
+    index: CellIndex,
+    queries: torch.Tensor,
+    candidates: torch.Tensor,
+    coordinates: torch.Tensor | None = None,
+) -> Nearest:
     """For each of ``queries (Q, 3)``, the nearest of its ``candidates (Q, k)`` (indices into
-    ``index.points``, -1 = none); ``distance2`` float32."""
-    safe = torch.where(candidates < 0, index.none, candidates)
-    best, pick = _distance2(index, safe, queries).min(dim=1)
+    ``index.points``, -1 = none); ``distance2`` float32. ``coordinates``: the candidates'
+    :func:`candidate_coordinates`, for queries that move while their candidates stay (the
+    same result without gathering them again)."""
+    if coordinates is None:
+        coordinates = candidate_coordinates(index, candidates)
+    q = (queries - index.origin).T.to(torch.float32)
+    d2 = (coordinates[0] - q[0][:, None]).square_()
+    for axis in (1, 2):  # the arithmetic of _distance2, in its order
+        d2 += (coordinates[axis] - q[axis][:, None]).square_()
+    best, pick = d2.min(dim=1)
     return Nearest(candidates.gather(1, pick[:, None])[:, 0], best)
+
+
+def candidate_coordinates(index: CellIndex, candidates: torch.Tensor) -> torch.Tensor:
+    """``(3, Q, k)`` float32 offsets from ``index.origin`` of the points ``candidates (Q, k)``
+    (-1: the point at infinity), for :func:`nearest_of`."""
+    flat = torch.where(candidates < 0, index.none, candidates).reshape(-1)
+    return index.columns.index_select(1, flat).view(3, *candidates.shape)
 
 
 def surface_normals(points: torch.Tensor, size: float, min_points: int = 8) -> torch.Tensor:

@@ -5,9 +5,11 @@ voxel brought the data to the features' scale). The probability is a logistic re
 what the run already knows about its own result (:attr:`RegistrationResult.cues`): the
 ratio-weighted inlier share, the inlier ratio and count, the overlap, the inlier ratio of the
 robust fit before refinement, the refinement's fitness, residual and rank, and how far the
-refinement moved the robust fit. :data:`COEFFICIENTS` are fitted on the development set of
-``benchmarks/confidence.py`` (its failures included) and the default ``--min-confidence``
-(:data:`DEFAULT_MIN_CONFIDENCE`) is the threshold chosen there, both printed by
+refinement moved the robust fit, and whether restarts of the refinement from turned starts
+come back to the result or find a better fit elsewhere. :data:`COEFFICIENTS` are fitted on
+the development set of ``benchmarks/confidence.py`` (its failures included) and the default
+``--min-confidence`` (:data:`DEFAULT_MIN_CONFIDENCE`) is the threshold chosen there, both
+printed by
 ``python benchmarks/confidence.py fit DEV.jsonl``.
 """
 
@@ -31,50 +33,105 @@ FEATURES = (
     "log_conditioning",
     "log_shift_deg",
     "log_shift_voxels",
+    "restart_return",
+    "restart_gain",
 )
 #: fitted weights of :data:`FEATURES`, then the bias, for the learned features
 #: (``python benchmarks/confidence.py fit`` on its development set of 320 pairs: 311
-#: registered, 219 of them right against the ground truth refined on the data, 9 refused)
+#: registered, 225 of them right against the ground truth refined on the data, 9 refused)
 COEFFICIENTS = (
-    -0.4876,
-    0.7900,
-    0.8316,
-    -0.9165,
-    0.9572,
-    0.3154,
-    -0.3050,
-    -0.5071,
-    2.4883,
-    0.3444,
-    -0.1400,
-    1.6932,
+    -0.1800,
+    0.3863,
+    0.7854,
+    -0.8484,
+    0.6124,
+    0.0260,
+    -0.2598,
+    -0.0897,
+    1.6314,
+    0.3773,
+    -0.2034,
+    2.1945,
+    -1.0458,
+    -1.4725,
 )
 #: the default ``--min-confidence`` of ``register`` and ``register-batch``: the highest
 #: threshold that keeps 95 % of the right results of the development set in its grouped
-#: cross-validation, with the FPFH fallback below it (precision there: 79.7 %, recall 95.5 %;
+#: cross-validation, with the FPFH fallback below it (precision there: 82.3 %, recall 95.2 %;
 #: see docs/registering.md)
 DEFAULT_MIN_CONFIDENCE = 0.45
 #: the same for FPFH features refined by the multiscale ICP (the learned features' fallback),
-#: fitted on the 174 FPFH registrations of the pairs where the learned features' confidence
-#: was low (72 right)
+#: fitted on the 115 FPFH registrations of the pairs where the learned features' confidence
+#: was low (34 right)
 FPFH_COEFFICIENTS = (
-    0.2300,
-    0.9971,
-    0.9678,
-    0.4867,
-    0.0115,
-    1.1944,
-    -0.2968,
-    -0.1611,
-    1.9036,
-    -0.0280,
-    0.1110,
-    2.4098,
+    0.1092,
+    0.6610,
+    1.0936,
+    0.0320,
+    0.0125,
+    0.5711,
+    -0.0933,
+    0.1571,
+    1.2644,
+    -0.1496,
+    0.0921,
+    0.7363,
+    -0.5455,
+    -1.0763,
 )
-#: the coefficients of each kind of features
-MODELS = {"byoc": COEFFICIENTS, "fpfh": FPFH_COEFFICIENTS}
+#: the same for results that the multiscale ICP did not refine (``--refine none``, the default
+#: of ``--features fpfh``; ``icp``), whose fit cues :func:`~byoc_cli.pipeline.refine.measure_fit`
+#: measures at the returned transform: ``python benchmarks/confidence.py collect --refine none``
+#: on the same 320 pairs (311 registered each; 164 learned and 140 FPFH results right), then
+#: ``fit``. The shift and restart cues are constant there (weight 0). In its grouped
+#: cross-validation, at :data:`DEFAULT_MIN_CONFIDENCE`: precision 70.9 %, recall 81.7 %
+#: (learned), 68.2 % / 87.1 % (FPFH)
+UNREFINED_COEFFICIENTS = (
+    -0.2883,
+    -0.3485,
+    2.2746,
+    -1.5063,
+    0.1448,
+    0.4037,
+    -0.1602,
+    0.1946,
+    2.6591,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    -10.6990,
+)
+FPFH_UNREFINED_COEFFICIENTS = (
+    -0.4269,
+    0.2366,
+    1.8489,
+    -0.2141,
+    -0.0362,
+    1.0768,
+    -0.4913,
+    0.0315,
+    2.1547,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    -6.5038,
+)
+#: the kinds of features a model is chosen by (``RegisterConfig.confidence_model``)
+MODEL_KINDS = ("byoc", "fpfh")
+#: the coefficients of each kind of features, refined by the multiscale ICP or not
+#: (``"<kind>-unrefined"``)
+MODELS = {
+    "byoc": COEFFICIENTS,
+    "fpfh": FPFH_COEFFICIENTS,
+    "byoc-unrefined": UNREFINED_COEFFICIENTS,
+    "fpfh-unrefined": FPFH_UNREFINED_COEFFICIENTS,
+}
 
 _EPS = 1e-4
+#: the restart gain (a share of the source points) counts up to this either way
+RESTART_GAIN_CLIP = 0.05
 
 
 def _logit(x: float) -> float:
@@ -98,6 +155,9 @@ def cue_vector(cues: Mapping[str, float]) -> np.ndarray:
             math.log10(max(cues["conditioning"], 1e-9)),
             math.log(cues["shift_deg"] + 0.1),
             math.log(cues["shift_voxels"] + 0.01),
+            cues.get("restart_return", 1.0),
+            min(max(cues.get("restart_gain", -1.0), -RESTART_GAIN_CLIP), RESTART_GAIN_CLIP)
+            / RESTART_GAIN_CLIP,
         ]
     )
 

@@ -18,6 +18,9 @@ fragment's first frame):
   sample it keeps the three 3DMatch pairs (> 0.30) and rejects the five 3DLoMatch pairs;
 * information matrix (:func:`information_matrix`): the official ``gt.info`` convention.
 
+gt.log keeps the pairs whose overlap lies in the band ``(min_overlap, max_overlap]``: 3DMatch's
+pairs are ``(0.3, 1]``, 3DLoMatch's ``(0.1, 0.3]`` (Huang et al., Predator, CVPR 2021).
+
 Depth pixels are back-projected through their centres (``u + 0.5``), as everywhere in this
 project (:func:`byoc_cli.io.rgbd.backproject`).
 """
@@ -69,6 +72,7 @@ from byoc_cli.pipeline.fusion import (
 __all__ = [
     "DEFAULT_DEPTH_TRUNC",
     "DEFAULT_FRAMES_PER_FRAGMENT",
+    "DEFAULT_MAX_OVERLAP",
     "DEFAULT_MIN_OVERLAP",
     "DEFAULT_SDF_TRUNC",
     "DEFAULT_TSDF_VOXEL",
@@ -83,8 +87,10 @@ __all__ = [
     "relative_pose",
 ]
 
-#: Pairs with an overlap above this go to gt.log (3DMatch: 30 %).
+#: Pairs with an overlap above this go to gt.log (3DMatch: 30 %; 3DLoMatch: 10 %).
 DEFAULT_MIN_OVERLAP = 0.3
+#: Pairs with an overlap up to this go to gt.log (1: no upper bound; 3DLoMatch: 30 %).
+DEFAULT_MAX_OVERLAP = 1.0
 _SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@+-]*$")
 
 
@@ -184,7 +190,10 @@ class _Fragment(NamedTuple):
     info_cloud: Any
 
 
-def _candidate_pairs(fragments: list[_Fragment], min_overlap: float) -> list[PairInfo]:
+def _candidate_pairs(
+    fragments: list[_Fragment], min_overlap: float, max_overlap: float
+) -> list[PairInfo]:
+    """The pairs ``i < j`` whose overlap lies in ``(min_overlap, max_overlap]``, in order."""
     pairs = []
     for a, frag_i in enumerate(fragments):
         for frag_j in fragments[a + 1 :]:
@@ -192,7 +201,7 @@ def _candidate_pairs(fragments: list[_Fragment], min_overlap: float) -> list[Pai
             overlap = _overlap_of_clouds(
                 frag_i.overlap_cloud, frag_j.overlap_cloud, T, OVERLAP_RADIUS
             )
-            if overlap <= min_overlap:
+            if not min_overlap < overlap <= max_overlap:
                 continue
             info = _information_of_clouds(
                 frag_i.info_cloud, frag_j.info_cloud, T, INFO_RADIUS, INFO_MAX_CORRESPONDENCES
@@ -238,7 +247,8 @@ class FragmentSettings:
     Attributes:
         frames_per_fragment, stride: see :func:`fragment_windows`.
         voxel_size, sdf_trunc, depth_trunc, min_observations: see :func:`fuse_fragment`.
-        min_overlap: pairs with a larger :func:`fragment_overlap` are kept.
+        min_overlap, max_overlap: pairs with ``min_overlap < overlap <= max_overlap``
+            (:func:`fragment_overlap`) are kept; ``(0.1, 0.3]`` is a 3DLoMatch-style band.
     """
 
     frames_per_fragment: int = DEFAULT_FRAMES_PER_FRAGMENT
@@ -248,6 +258,7 @@ class FragmentSettings:
     depth_trunc: float = DEFAULT_DEPTH_TRUNC
     min_observations: int = DEFAULT_MIN_OBSERVATIONS
     min_overlap: float = DEFAULT_MIN_OVERLAP
+    max_overlap: float = DEFAULT_MAX_OVERLAP
 
 
 def make_fragment_benchmark(
@@ -262,7 +273,8 @@ def make_fragment_benchmark(
 
     Writes ``out_dir/<scene>/cloud_bin_K.ply`` (binary PLY, x y z float32, each fragment in
     its first frame's camera frame), ``out_dir/<scene>-evaluation/gt.log``, ``gt.info`` and
-    ``gt_overlap.log`` (pairs ``i < j`` with overlap above ``min_overlap``), and
+    ``gt_overlap.log`` (pairs ``i < j`` whose overlap lies in ``(min_overlap, max_overlap]``),
+    and
     ``out_dir/make-fragments.json`` (settings, frames and pose of every fragment). Everything
     is written into a hidden folder beside ``out_dir`` that is renamed to ``out_dir`` at the
     end, so an error leaves nothing behind.
@@ -274,7 +286,7 @@ def make_fragment_benchmark(
         on_fragment: called with each fused fragment and the number of fragments.
         settings: the fields of :class:`FragmentSettings` (``frames_per_fragment``,
             ``stride``, ``voxel_size``, ``sdf_trunc``, ``depth_trunc``,
-            ``min_observations``, ``min_overlap``).
+            ``min_observations``, ``min_overlap``, ``max_overlap``).
 
     Returns:
         :class:`FragmentBenchmark`.
@@ -289,12 +301,17 @@ def make_fragment_benchmark(
     """
     fs = FragmentSettings(**settings)
     frames_per_fragment, stride, min_overlap = fs.frames_per_fragment, fs.stride, fs.min_overlap
+    max_overlap = fs.max_overlap
     voxel_size, sdf_trunc, depth_trunc = fs.voxel_size, fs.sdf_trunc, fs.depth_trunc
     min_observations = fs.min_observations
     out_dir = Path(out_dir)
     scene = _check_scene(scene)
     if not 0.0 <= float(min_overlap) < 1.0:
         raise ValueError(f"min_overlap must lie in [0, 1), got {min_overlap}")
+    if not float(min_overlap) < float(max_overlap) <= 1.0:
+        raise ValueError(
+            f"max_overlap must lie in (min_overlap, 1] = ({min_overlap}, 1], got {max_overlap}"
+        )
     windows = fragment_windows(len(sequence.frames), frames_per_fragment, stride)
     if not windows:
         raise DatasetError(
@@ -312,6 +329,7 @@ def make_fragment_benchmark(
         "stride": int(stride if stride is not None else frames_per_fragment),
         "tsdf_voxel": voxel_size, "sdf_trunc": sdf_trunc, "depth_trunc": depth_trunc,
         "min_observations": min_observations, "min_overlap": min_overlap,
+        "max_overlap": max_overlap,
         "overlap": {"voxel": OVERLAP_VOXEL, "radius": OVERLAP_RADIUS, "direction": "min"},
         "info": {"voxel": INFO_VOXEL, "radius": INFO_RADIUS, "max": INFO_MAX_CORRESPONDENCES},
     }  # fmt: skip
@@ -341,11 +359,13 @@ def make_fragment_benchmark(
             )
             if on_fragment is not None:
                 on_fragment(info, len(windows))
-        pairs = _candidate_pairs(fragments, float(min_overlap))
+        pairs = _candidate_pairs(fragments, float(min_overlap), float(max_overlap))
         if not pairs:
             warnings.warn(
                 f"no pair of the {len(fragments)} fragments overlaps by more than "
-                f"{min_overlap:.0%}: gt.log is empty",
+                f"{min_overlap:.0%}"
+                + (f" and at most {max_overlap:.0%}" if max_overlap < 1 else "")
+                + ": gt.log is empty",
                 stacklevel=2,
             )
         n = len(fragments)

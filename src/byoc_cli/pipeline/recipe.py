@@ -82,10 +82,12 @@ class MatchingRecipe:
             (0 = all).
         correspondences: the top-k Lowe-ratio matches kept per direction (2k in all; the
             ratio is each match's weight, no threshold).
+        mutual: keep only mutual nearest neighbours before the top-k selection.
     """
 
     max_points: int
     correspondences: int
+    mutual: bool = False
 
 
 @dataclass(frozen=True)
@@ -117,9 +119,12 @@ class RefinementRecipe:
         method: ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`:
             coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held),
             ``"none"``, or the deprecated ``"icp"`` (Open3D's ICP on the kept points).
+        restarts: after ``"multiscale"``, refine again from starts turned around the result
+            and keep the better end (:func:`byoc_cli.pipeline.refine.restart_refinement`).
     """
 
     method: str
+    restarts: bool = True
 
 
 @dataclass(frozen=True)
@@ -253,6 +258,8 @@ def check_recipe(recipe: RegistrationRecipe) -> None:
         ("fitting.num_subsets", _is_int(fit.num_subsets) and fit.num_subsets >= 1, "an int >= 1"),
         ("fitting.subset_size", _is_int(fit.subset_size) and fit.subset_size >= 3, "an int >= 3"),
         ("refinement.method", r.method in REFINEMENTS, f"one of {', '.join(REFINEMENTS)}"),
+        ("refinement.restarts", isinstance(r.restarts, bool), "true or false"),
+        ("matching.mutual", isinstance(m.mutual, bool), "true or false"),
         (
             "gate.min_confidence",
             _is_number(g.min_confidence) and 0 <= g.min_confidence <= 1,

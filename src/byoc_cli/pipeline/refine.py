@@ -28,9 +28,16 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from byoc_cli.fitting.point_to_plane import DEGENERACY, SLIDING, point_to_plane_step
+from byoc_cli.fitting.point_to_plane import (
+    DEGENERACY,
+    SLIDING,
+    PlaneStep,
+    point_to_plane_step,
+)
 from byoc_cli.geometry.neighbors import (
     CellIndex,
+    Nearest,
+    candidate_coordinates,
     nearest_candidates,
     nearest_of,
     surface_normals,
@@ -111,7 +118,7 @@ class RefineCloud:
         self.voxel_size = float(voxel_size)
         self.levels = _level_geometry(self.voxel_size)
         self._averages: dict[int, torch.Tensor] = {}
-        self._sources: dict[int, torch.Tensor] = {}
+        self._sources: dict[tuple[int, int], torch.Tensor] = {}
         self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
         # one lock per level: levels are built side by side, each once
         self._locks = [threading.RLock() for _ in self.levels]
@@ -123,13 +130,13 @@ class RefineCloud:
                 self._averages[level] = voxel_average(self.points, self.levels[level][0])
             return self._averages[level]
 
-    def source(self, level: int) -> torch.Tensor:
-        """``(K, 3)`` source points of ``level``."""
+    def source(self, level: int, max_points: int = MAX_SOURCE_POINTS) -> torch.Tensor:
+        """``(K, 3)`` source points of ``level``, ``K <= max_points`` (an even stride)."""
         with self._locks[level]:
-            if level not in self._sources:
+            if (level, max_points) not in self._sources:
                 p = self.average(level)
-                self._sources[level] = p[:: max(1, -(-len(p) // MAX_SOURCE_POINTS))]
-            return self._sources[level]
+                self._sources[level, max_points] = p[:: max(1, -(-len(p) // max_points))]
+            return self._sources[level, max_points]
 
     def target(self, level: int) -> tuple[torch.Tensor, torch.Tensor, CellIndex]:
         """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and a
@@ -169,6 +176,7 @@ def refine_multiscale(
     degeneracy: float = DEGENERACY,
     sliding: float = SLIDING,
     parallel: Callable[[Sequence[Callable[[], torch.Tensor]]], list] | None = None,
+    max_source_points: int = MAX_SOURCE_POINTS,
 ) -> Refinement:
     """Refine ``T_init`` by coarse-to-fine point-to-plane ICP.
 
@@ -183,6 +191,7 @@ def refine_multiscale(
         parallel: runs independent calls (results in order), e.g. side by side on two
             threads (:func:`byoc_cli.threads.side_by_side`): the nearest-point searches of
             the two halves of the source points. None: in turn. The result is the same.
+        max_source_points: source points per level at most.
 
     Returns:
         :class:`Refinement`; ``T_init`` itself where a level has fewer than
@@ -195,7 +204,7 @@ def refine_multiscale(
     T = T_init.detach().to(device="cpu", dtype=torch.float64).clone()
     rank, fitness, rmse, conditioning = 0, 0.0, float("nan"), 0.0
     for level, (size, dist, _) in enumerate(src.levels):
-        p = src.source(level)  # levels, normals and searches: all threads
+        p = src.source(level, max_source_points)  # levels, normals and searches: all threads
         q, n, index = tgt.target(level)
         if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
             break
@@ -204,19 +213,15 @@ def refine_multiscale(
             moved = p @ T[:3, :3].T + T[:3, 3]
             if anchor is None or float((moved - anchor).abs().max()) > RESEARCH * size:
                 candidates = _search(index, moved, SEARCH_REACH[level], parallel)
+                coordinates = candidate_coordinates(index, candidates)
                 anchor = moved
-            near = nearest_of(index, moved, candidates)
-            ok = near.distance2 <= dist**2
-            fitness = float(ok.double().mean())
-            if int(ok.sum()) < MIN_CORRESPONDENCES:
+            near = nearest_of(index, moved, candidates, coordinates)
+            fitness, level_rmse, step = _meet(
+                moved, near, (q, n), dist, voxel_size, (degeneracy, sliding)
+            )
+            if step is None:
                 break
-            rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
-            j = near.index[ok]
-            # tiny tensors: extra threads only wait on each other (10x slower)
-            with _threads(1):
-                step = point_to_plane_step(
-                    moved[ok], q[j], n[j], degeneracy=degeneracy, sliding=sliding
-                )
+            rmse = level_rmse
             T = step.T @ T
             rank, conditioning = step.rank, float(step.eigenvalues[0])
             dR = step.T[:3, :3]
@@ -224,6 +229,66 @@ def refine_multiscale(
             if angle < TOLERANCE and float(step.T[:3, 3].norm()) < TOLERANCE * voxel_size:
                 break
     return Refinement(T, rank, fitness, rmse, conditioning)
+
+
+def measure_fit(
+    points_src: torch.Tensor | RefineCloud,
+    points_tgt: torch.Tensor | RefineCloud,
+    T: torch.Tensor,
+    voxel_size: float,
+) -> Refinement:
+    """How well ``T (4, 4)`` fits, measured as :func:`refine_multiscale` measures its own
+    result, without moving it: the finest level's fitness and residual, and the rank and
+    conditioning of its normal equations at ``T``. The confidence of a result that is not
+    refined reads these (a transform is judged by how its clouds meet, whether or not it
+    was refined).
+
+    Args: as :func:`refine_multiscale`.
+
+    Returns:
+        :class:`Refinement` with ``T_tgt_src = T``; fitness 0 and rank 0 where fewer than
+        ``MIN_CORRESPONDENCES`` points meet.
+    """
+    src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
+    T = T.detach().to(device="cpu", dtype=torch.float64).clone()
+    level = len(src.levels) - 1
+    _, dist, _ = src.levels[level]
+    p = src.source(level)
+    q, n, index = tgt.target(level)
+    if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
+        return Refinement(T, 0, 0.0)
+    moved = p @ T[:3, :3].T + T[:3, 3]
+    near = nearest_of(index, moved, _search(index, moved, SEARCH_REACH[level], None))
+    fitness, rmse, step = _meet(moved, near, (q, n), dist, voxel_size)
+    if step is None:
+        return Refinement(T, 0, fitness)
+    return Refinement(T, step.rank, fitness, rmse, float(step.eigenvalues[0]))
+
+
+def _meet(
+    moved: torch.Tensor,
+    near: Nearest,
+    planes: tuple[torch.Tensor, torch.Tensor],
+    dist: float,
+    voxel_size: float,
+    held: tuple[float, float] = (DEGENERACY, SLIDING),
+) -> tuple[float, float, PlaneStep | None]:
+    """How source points ``moved (K, 3)`` meet their ``near`` target points: the share
+    within ``dist`` (metres; the fitness), their RMS distance in feature voxels, and
+    the point-to-plane step onto the target ``planes`` (points ``(M, 3)``, normals
+    ``(M, 3)``) with ``held = (degeneracy, sliding)``; residual nan and no step where fewer
+    than ``MIN_CORRESPONDENCES`` meet."""
+    ok = near.distance2 <= dist**2
+    fitness = float(ok.double().mean())
+    if int(ok.sum()) < MIN_CORRESPONDENCES:
+        return fitness, float("nan"), None
+    rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
+    j = near.index[ok]
+    q, n = planes
+    # tiny tensors: extra threads only wait on each other (10x slower)
+    with _threads(1):
+        step = point_to_plane_step(moved[ok], q[j], n[j], degeneracy=held[0], sliding=held[1])
+    return fitness, rmse, step
 
 
 #: fewest source points whose search is split in two for ``parallel``
@@ -357,3 +422,105 @@ def information_matrix(
         1,
     )  # (K, 3, 6)
     return torch.einsum("kai,kaj->ij", J, J).numpy()
+
+
+#: restarts of the refinement, the check of the basin a result sits in: the result turned by
+#: +-RESTART_DEG about each axis through the source's centroid (6 starts), each refined on at
+#: most RESTART_POINTS source points per level
+RESTART_DEG = 8.0
+RESTART_POINTS = 2000
+#: two refined ends closer than this (degrees, and multiples of the feature voxel) are one place
+SAME_DEG = 1.0
+SAME_VOXELS = 1.0
+
+
+class Restarts(NamedTuple):
+    """Outcome of :func:`restart_refinement`.
+
+    Attributes:
+        ends: ``(S, 4, 4)`` float64: where the refinement ends from each start; start 0 is
+            the result itself.
+        fitness: ``(S,)`` float64 fitness of each end (the same reduced refinement for all).
+        voxel_size: the feature voxel the places are compared at.
+    """
+
+    ends: torch.Tensor
+    fitness: torch.Tensor
+    voxel_size: float
+
+    def same_place(self, i: int) -> torch.Tensor:
+        """``(S,)`` bool: the ends within ``SAME_DEG`` and ``SAME_VOXELS`` of end ``i``."""
+        D = torch.linalg.inv(self.ends[i]) @ self.ends
+        cos = ((D[:, :3, :3].diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
+        angle = torch.rad2deg(torch.arccos(cos))
+        shift = torch.linalg.vector_norm(D[:, :3, 3], dim=-1) / self.voxel_size
+        return (angle < SAME_DEG) & (shift < SAME_VOXELS)
+
+    def best(self) -> int:
+        """The end of highest fitness (the first on ties)."""
+        return int(torch.argmax(self.fitness))
+
+    def gain(self, i: int) -> float:
+        """Highest fitness of the ends elsewhere than end ``i`` minus end ``i``'s (-1: every
+        end is in its place)."""
+        elsewhere = ~self.same_place(i)
+        if not bool(elsewhere.any()):
+            return -1.0
+        return float(self.fitness[elsewhere].max() - self.fitness[i])
+
+    def returned(self, i: int) -> float:
+        """Share of the restarts (starts 1 on) that end in end ``i``'s place."""
+        return float(self.same_place(i)[1:].double().mean()) if len(self.ends) > 1 else 1.0
+
+
+def restart_starts(T: torch.Tensor, centroid: torch.Tensor) -> torch.Tensor:
+    """``(7, 4, 4)`` starts: ``T (4, 4)`` itself, then turned by +-``RESTART_DEG`` about each
+    axis through the source point ``centroid (3,)``."""
+    starts = [T]
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            angle = math.radians(sign * RESTART_DEG)
+            i, j = [(1, 2), (0, 2), (0, 1)][axis]
+            M = torch.eye(4, dtype=torch.float64)
+            M[i, i] = M[j, j] = math.cos(angle)
+            M[i, j], M[j, i] = -math.sin(angle), math.sin(angle)
+            M[:3, 3] = centroid - M[:3, :3] @ centroid  # about the centroid
+            starts.append(T @ M)
+    return torch.stack(starts)
+
+
+def restart_refinement(
+    points_src: torch.Tensor | RefineCloud,
+    points_tgt: torch.Tensor | RefineCloud,
+    T: torch.Tensor,
+    voxel_size: float,
+    parallel: Callable[[Sequence[Callable[[], torch.Tensor]]], list] | None = None,
+) -> Restarts:
+    """Refine again from ``T (4, 4)`` and from the starts around it of :func:`restart_starts`,
+    on at most ``RESTART_POINTS`` source points per level: a right result sits in a basin
+    the restarts come back to, and no restart ends elsewhere with a better fitness.
+
+    Args: as :func:`refine_multiscale`; ``parallel`` runs two halves of the starts side by side.
+    """
+    src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
+    centroid = src.source(0, RESTART_POINTS).mean(0)
+    starts = restart_starts(T.detach().to(torch.float64).cpu(), centroid)
+
+    def run(indices: Sequence[int]) -> list[Refinement]:
+        return [
+            refine_multiscale(src, tgt, starts[k], voxel_size, max_source_points=RESTART_POINTS)
+            for k in indices
+        ]
+
+    order = list(range(len(starts)))
+    if parallel is None:
+        ends = run(order)
+    else:
+        halves = parallel([lambda: run(order[0::2]), lambda: run(order[1::2])])
+        ends = [None] * len(order)
+        ends[0::2], ends[1::2] = halves[0], halves[1]
+    return Restarts(
+        torch.stack([e.T_tgt_src for e in ends]),
+        torch.tensor([e.fitness for e in ends], dtype=torch.float64),
+        float(voxel_size),
+    )

@@ -19,10 +19,15 @@ from byoc_cli.fitting import randomized_procrustes, ransac
 from byoc_cli.geometry import apply_transform
 from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
-from byoc_cli.pipeline.confidence import MODELS, probability_right
+from byoc_cli.pipeline.confidence import MODEL_KINDS, MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.recipe import ESTIMATORS, PAPER, RegistrationRecipe
-from byoc_cli.pipeline.refine import refine_multiscale
+from byoc_cli.pipeline.refine import (
+    Refinement,
+    measure_fit,
+    refine_multiscale,
+    restart_refinement,
+)
 from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
@@ -49,6 +54,12 @@ class RegisterConfig:
             ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to
             fine on the full-resolution clouds, degenerate directions held).
         icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
+        restarts: after ``"multiscale"`` refinement, refine again from starts turned around the
+            result (:func:`byoc_cli.pipeline.refine.restart_refinement`), keep the end of best
+            fitness when it is elsewhere and better by ``SWITCH_GAIN``, and report how the
+            restarts agree (``restart_return``, ``restart_gain``).
+        mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
+            (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
         confidence_model: the features whose calibration turns the cues into the confidence
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
@@ -64,6 +75,8 @@ class RegisterConfig:
     ransac_confidence: float = PAPER.fitting.ransac_confidence
     refine: str | None = None
     icp_factor: float = 2.0
+    mutual: bool = PAPER.matching.mutual
+    restarts: bool = PAPER.refinement.restarts
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
@@ -73,9 +86,9 @@ class RegisterConfig:
             raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
         if self.refine not in REFINERS:
             raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
-        if self.confidence_model not in MODELS:
+        if self.confidence_model not in MODEL_KINDS:
             raise ValueError(
-                f"confidence_model must be one of {sorted(MODELS)}, got {self.confidence_model!r}"
+                f"confidence_model must be one of {MODEL_KINDS}, got {self.confidence_model!r}"
             )
         if self.num_correspondences < 1 or self.max_points < 0:
             raise ValueError("num_correspondences must be >= 1 and max_points >= 0")
@@ -96,6 +109,8 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         ransac_iterations=fit.ransac_iterations,
         ransac_confidence=fit.ransac_confidence,
         refine=None if method == "none" else method,
+        mutual=recipe.matching.mutual,
+        restarts=recipe.refinement.restarts,
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
     )
@@ -193,6 +208,7 @@ def estimate_transform(
         k=config.num_correspondences,
         chunk_size=config.chunk_size,
         parallel=parallel,
+        mutual=config.mutual,
     )
     if corr.src_idx.numel() < 3:
         raise RegistrationError(f"only {corr.src_idx.numel()} correspondences (need 3)")
@@ -213,17 +229,27 @@ def estimate_transform(
     start = timer("fit", start)
 
     refinement = None
+    restart_cues = {"restart_return": 1.0, "restart_gain": -1.0}  # no restarts: no doubt
+    full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
     if config.refine == "icp":
         T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
         start = timer("refine", start)
     elif config.refine == "multiscale":
-        full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
         refinement = refine_multiscale(
             full_src, full_tgt, T, refine_voxel or voxel_size, parallel=parallel
         )
         T = refinement.T_tgt_src
         start = timer("refine", start)
+        if config.restarts:
+            refinement, restart_cues = _restart(
+                (full_src, full_tgt), refinement, refine_voxel or voxel_size, parallel
+            )
+            T = refinement.T_tgt_src
+            start = timer("restarts", start)
 
+    if refinement is None:  # the fit cues of the result as it is
+        refinement = measure_fit(full_src, full_tgt, T, refine_voxel or voxel_size)
+        start = timer("measure", start)
     residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
     inlier = residual < threshold
     num_inliers = int(inlier.sum())
@@ -234,19 +260,22 @@ def estimate_transform(
     coarse = torch.linalg.vector_norm(apply_transform(T_coarse, p) - q, dim=1) < threshold
     shift = T @ torch.linalg.inv(T_coarse)
     cues = {
+        **restart_cues,
         "inlier_share": share,
         "inlier_ratio": num_inliers / p.shape[0],
         "inliers": float(num_inliers),
         "overlap": overlap,
         "coarse_inlier_ratio": float(coarse.double().mean()),
-        "fitness": 1.0 if refinement is None else refinement.fitness,
-        "rmse": 0.0 if refinement is None else refinement.rmse,
-        "rank": 6.0 if refinement is None else float(refinement.rank),
-        "conditioning": 1.0 if refinement is None else refinement.conditioning,
+        "fitness": refinement.fitness,
+        "rmse": refinement.rmse,
+        "rank": float(refinement.rank),
+        "conditioning": refinement.conditioning,
         "shift_deg": _angle_deg(shift[:3, :3]),
         "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / voxel_size,
     }
-    model = MODELS[config.confidence_model]
+    # a result that the multiscale ICP did not refine has its own calibration
+    kind = config.confidence_model
+    model = MODELS[kind if config.refine == "multiscale" else f"{kind}-unrefined"]
     confidence = probability_right(cues, model) if num_inliers >= 3 else 0.0
     timer("verify", start)
     return RegistrationResult(
@@ -262,6 +291,29 @@ def estimate_transform(
         timings=timer.timings,
         cues=cues,
     )
+
+
+#: a restart's end replaces the refined result when its fitness is higher by this
+SWITCH_GAIN = 0.01
+
+
+def _restart(clouds, refinement: Refinement, voxel_size: float, parallel):
+    """The refinement to report and the restart cues: :func:`restart_refinement` around
+    ``refinement``'s result; where the best end lies elsewhere and its fitness is higher by
+    ``SWITCH_GAIN``, the full refinement from there replaces it."""
+    restarts = restart_refinement(*clouds, refinement.T_tgt_src, voxel_size, parallel=parallel)
+    pick = restarts.best()
+    if (
+        bool(restarts.same_place(0)[pick])
+        or restarts.fitness[pick] - restarts.fitness[0] <= SWITCH_GAIN
+    ):
+        pick = 0
+    else:
+        refinement = refine_multiscale(*clouds, restarts.ends[pick], voxel_size, parallel=parallel)
+    return refinement, {
+        "restart_return": restarts.returned(pick),
+        "restart_gain": restarts.gain(pick),
+    }
 
 
 def _angle_deg(R: torch.Tensor) -> float:

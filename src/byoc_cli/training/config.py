@@ -108,6 +108,8 @@ class TrainConfig:
         aug_scale: ``self-posed``: shared scale jitter ``1 +- aug_scale``.
         aug_min_keep: ``self-posed``: each view keeps a random share >= this of its points.
         pair_gaps: ``self-posed``: frame distances of the self-posed pairs.
+        pair_min_fitness: ``self-posed``: smallest ICP fitness (share of the source frame's
+            points matched, an overlap) of a kept wide pair; lower keeps pairs of lower overlap.
         crop_radius: ``self-posed``: both views cut to a ball of this radius (m); 0 = off.
         aug_hole_prob, aug_hole_min_keep: ``self-posed``: with this probability a view loses
             a random share of its occupied voxels, keeping at least ``aug_hole_min_keep`` of
@@ -162,6 +164,7 @@ class TrainConfig:
     aug_scale: float = 0.05
     aug_min_keep: float = 0.7
     pair_gaps: tuple[int, ...] = (5, 10, 15, 20, 30, 40, 50, 60)
+    pair_min_fitness: float = 0.3
     crop_radius: float = 0.0
     aug_hole_prob: float = 0.0
     aug_hole_min_keep: float = 0.25
@@ -203,6 +206,8 @@ class TrainConfig:
             problems.append(f"pair_gaps must be positive frame distances, got {self.pair_gaps}")
         if self.round_gaps and min(self.round_gaps) < 1:
             problems.append(f"round_gaps must be positive frame distances, got {self.round_gaps}")
+        if not 0 < self.pair_min_fitness <= 1:
+            problems.append(f"pair_min_fitness must be in (0, 1], got {self.pair_min_fitness}")
         if not self.crop_radius >= 0:
             problems.append(f"crop_radius must be >= 0, got {self.crop_radius}")
         if not 0 <= self.aug_hole_prob <= 1 or not 0 < self.aug_hole_min_keep <= 1:

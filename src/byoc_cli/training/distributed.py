@@ -6,6 +6,7 @@ a single process and no process group is created.
 
 from __future__ import annotations
 
+import gc
 import os
 from datetime import timedelta
 from typing import Any, NamedTuple
@@ -71,8 +72,13 @@ def init_distributed(device: str = "auto", timeout_s: float = 1800.0) -> DistInf
 
 
 def shutdown(info: DistInfo) -> None:
-    """Leave the process group (no-op alone)."""
+    """Leave the process group (no-op alone).
+
+    Objects that still hold the group (a DDP wrapper in a reference cycle) are collected
+    first, so that gloo's threads are joined here and not at interpreter exit.
+    """
     if info.distributed and dist.is_initialized():
+        gc.collect()
         dist.destroy_process_group()
 
 

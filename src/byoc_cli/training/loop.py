@@ -369,7 +369,16 @@ class _Run:
         self.result.steps = self.step
         if info.is_main:
             self._export()
+        self._release()
         return self.result
+
+    def _release(self) -> None:
+        """End a distributed run together: every process waits for rank 0's export and
+        drops its DDP wrapper before the process group is destroyed (a process that tears
+        the group down while its peer still uses it aborts in gloo's threads)."""
+        if self.info.distributed:
+            barrier(self.info)
+            self.module = self.task.model
 
     def _steps(self) -> None:
         config, info, task = self.config, self.info, self.task

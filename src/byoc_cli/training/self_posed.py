@@ -70,7 +70,12 @@ def pseudo_config(config: TrainConfig, round_number: int = 1) -> PseudoPoseConfi
     gaps = config.pair_gaps
     if round_number > 1:
         gaps += tuple(g for g in config.round_gaps if g not in config.pair_gaps)
-    return PseudoPoseConfig(voxel_size=config.voxel_size, gaps=gaps, seed=config.seed)
+    return PseudoPoseConfig(
+        voxel_size=config.voxel_size,
+        gaps=gaps,
+        min_fitness=config.pair_min_fitness,
+        seed=config.seed,
+    )
 
 
 def pairs_folder(run_dir: Path, round_number: int) -> Path:
