@@ -178,6 +178,38 @@ def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(ge
     assert not refine_module.enough_points(refine_module.pair_cloud(src[:5], 0.02))
 
 
+def test_a_pyramid_cloud_averages_its_coarse_levels_from_the_finest(generator):
+    src, _ = _room_pair(30000, torch.eye(4, dtype=torch.float64), generator)
+    exact, pyramid = RefineCloud(src, 0.05), RefineCloud(src, 0.05, pyramid=True)
+    finest = len(exact.levels) - 1
+    assert torch.equal(pyramid.average(finest), exact.average(finest))
+    for level in range(finest):
+        a, b = exact.average(level), pyramid.average(level)
+        # the same surfaces: every pyramid average lies near an exact average of its level
+        size = exact.levels[level][0]
+        d = torch.cdist(b, a).min(dim=1).values
+        assert abs(len(a) - len(b)) <= 0.05 * len(a) and float(d.median()) < 0.1 * size
+    assert refine_module.pair_cloud(src, 0.02).pyramid
+
+
+def test_a_pair_refinement_measures_its_information_only_when_read(generator, monkeypatch):
+    import numpy as np
+
+    T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
+    src, tgt = _room_pair(20000, T_true, generator)
+    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    calls = []
+    measure = refine_module.information_matrix
+    monkeypatch.setattr(
+        refine_module, "information_matrix", lambda *args: calls.append(1) or measure(*args)
+    )
+    fit = refine_module.refine_pair(a, b, np.eye(4))
+    assert calls == []
+    first = fit.information
+    assert calls == [1] and first.shape == (6, 6) and fit.information is first
+    assert calls == [1]
+
+
 def test_restarts_come_back_to_a_right_result_of_distinct_geometry(generator):
     T_true = _motion([0.1, -0.2, 0.15], [0.1, 0.2, -0.05])
     src, tgt = _room_pair(40_000, T_true, generator)

@@ -42,6 +42,7 @@ from byoc_cli.geometry.neighbors import (
     nearest_of,
     surface_normals,
     voxel_average,
+    voxel_means,
 )
 
 #: (voxel, correspondence distance) per level, in multiples of the feature voxel size
@@ -109,14 +110,24 @@ class RefineCloud:
     Args:
         points: ``(N, 3)`` points (metres), a tensor or an array.
         voxel_size: the feature voxel ``v`` the levels scale with.
+        pyramid: average the points at the finest level only and each coarser level from
+            the finer level's averages, weighted by their point counts (one pass over the
+            points instead of one per level; a point near a coarse cell's border may go
+            with its fine cell's average to the cell next door): for the many
+            full-resolution frames of ``odometry``, ``register-scans`` and the self-posed
+            pairs.
     """
 
-    def __init__(self, points: torch.Tensor | np.ndarray, voxel_size: float) -> None:
+    def __init__(
+        self, points: torch.Tensor | np.ndarray, voxel_size: float, pyramid: bool = False
+    ) -> None:
         if not isinstance(points, torch.Tensor):
             points = torch.from_numpy(np.asarray(points))
         self.points = points.detach().to(device="cpu", dtype=torch.float64)
         self.voxel_size = float(voxel_size)
         self.levels = _level_geometry(self.voxel_size)
+        self.pyramid = pyramid
+        self._weights: dict[int, torch.Tensor] = {}  # pyramid: points per average
         self._averages: dict[int, torch.Tensor] = {}
         self._sources: dict[tuple[int, int], torch.Tensor] = {}
         self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
@@ -127,7 +138,15 @@ class RefineCloud:
         """``(M, 3)`` voxel averages of the points at ``level``'s voxel."""
         with self._locks[level]:
             if level not in self._averages:
-                self._averages[level] = voxel_average(self.points, self.levels[level][0])
+                size = self.levels[level][0]
+                if not self.pyramid:
+                    self._averages[level] = voxel_average(self.points, size)
+                elif level == len(self.levels) - 1:
+                    self._averages[level], self._weights[level] = voxel_means(self.points, size)
+                else:  # the finer level first (its lock after this one's: no cycle)
+                    finer = self.average(level + 1)
+                    means = voxel_means(finer, size, self._weights[level + 1])
+                    self._averages[level], self._weights[level] = means
             return self._averages[level]
 
     def source(self, level: int, max_points: int = MAX_SOURCE_POINTS) -> torch.Tensor:
@@ -348,7 +367,7 @@ FINE_DISTANCE = LEVELS[-1][1] / LEVELS[-1][0]
 MIN_PAIR_POINTS = 10
 
 
-class PairFit(NamedTuple):
+class PairFit:
     """:func:`refine_pair`'s result.
 
     Attributes:
@@ -358,19 +377,37 @@ class PairFit(NamedTuple):
         rmse: root mean square distance of those points to their nearest target point
             (metres; nan when no level ran).
         information: ``(6, 6)`` information matrix of the finest correspondences (rotation
-            first, then translation: Open3D's order, that of its pose graph).
+            first, then translation: Open3D's order, that of its pose graph); given, or
+            measured on first read by a callable (only the pairs that become edges of a
+            pose graph need it).
     """
 
-    T_tgt_src: np.ndarray
-    fitness: float
-    rmse: float
-    information: np.ndarray
+    __slots__ = ("T_tgt_src", "_information", "fitness", "rmse")
+
+    def __init__(
+        self,
+        T_tgt_src: np.ndarray,
+        fitness: float,
+        rmse: float,
+        information: np.ndarray | Callable[[], np.ndarray],
+    ) -> None:
+        self.T_tgt_src, self.fitness, self.rmse = T_tgt_src, fitness, rmse
+        self._information = information
+
+    @property
+    def information(self) -> np.ndarray:
+        if callable(self._information):
+            self._information = self._information()
+        return self._information
+
+    def __repr__(self) -> str:
+        return f"PairFit(fitness={self.fitness:.4f}, rmse={self.rmse:.5f})"
 
 
 def pair_cloud(points: torch.Tensor | np.ndarray, icp_voxel: float) -> RefineCloud:
     """``points (N, 3)`` prepared for :func:`refine_pair` with the finest ICP voxel
     ``icp_voxel`` (levels built on use)."""
-    return RefineCloud(points, icp_voxel / FINE_VOXEL)
+    return RefineCloud(points, icp_voxel / FINE_VOXEL, pyramid=True)
 
 
 def icp_voxel(cloud: RefineCloud) -> float:
@@ -385,12 +422,17 @@ def enough_points(cloud: RefineCloud, min_points: int = MIN_PAIR_POINTS) -> bool
 
 def refine_pair(src: RefineCloud, tgt: RefineCloud, T_init: np.ndarray, parallel=None) -> PairFit:
     """:func:`refine_multiscale` of ``src`` onto ``tgt`` (two :func:`pair_cloud` of one ICP
-    voxel) from ``T_init (4, 4)``, with the fit's fitness, RMSE and information matrix."""
+    voxel) from ``T_init (4, 4)``, with the fit's fitness, RMSE and information matrix
+    (measured when first read)."""
     voxel = src.voxel_size
     start = torch.from_numpy(np.asarray(T_init, dtype=np.float64))
     out = refine_multiscale(src, tgt, start, voxel, parallel=parallel)
-    info = information_matrix(src, tgt, out.T_tgt_src, LEVELS[-1][1] * voxel)
-    return PairFit(out.T_tgt_src.numpy().copy(), out.fitness, out.rmse * voxel, info)
+    T = out.T_tgt_src
+
+    def information() -> np.ndarray:
+        return information_matrix(src, tgt, T, LEVELS[-1][1] * voxel)
+
+    return PairFit(T.numpy().copy(), out.fitness, out.rmse * voxel, information)
 
 
 def information_matrix(
