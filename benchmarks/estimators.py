@@ -128,9 +128,10 @@ def main() -> int:
     parser.add_argument("--num-correspondences", type=int, action="append")
     args = parser.parse_args()
 
+    from byoc_cli.evaluation.methods import open3d_icp
     from byoc_cli.pipeline.features import ByocExtractor
     from byoc_cli.pipeline.refine import refine_multiscale
-    from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
+    from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
     from byoc_cli.pipeline.weights import load_weights
 
     loaded = load_weights(args.weights)
@@ -199,7 +200,7 @@ def main() -> int:
                         elif s["icp"] != "none":
                             which, factor = s["icp"].split("-")
                             a, b = (fs.points, ft.points) if which == "kept" else (ps, pt)
-                            T = refine_icp(a, b, T, float(factor) * voxel)
+                            T = open3d_icp(a, b, T, float(factor) * voxel)
                         err = _errors(T.double().numpy(), T_gt)
                     except Exception:  # a failed fit counts as a failure
                         err = (180.0, 10.0)

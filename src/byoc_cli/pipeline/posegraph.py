@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from byoc_cli.errors import require_open3d
+from byoc_cli.fitting.ransac import CONFIDENCE, MAX_ITERATIONS
 
 #: normals from at most this many neighbours within 2 voxels (FPFH's cloud)
 NORMAL_MAX_NN = 30
@@ -76,7 +77,7 @@ def fpfh_ransac(
             reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
             reg.CorrespondenceCheckerBasedOnDistance(1.5 * size),
         ],
-        reg.RANSACConvergenceCriteria(100_000, 0.999),
+        reg.RANSACConvergenceCriteria(MAX_ITERATIONS, CONFIDENCE),
     )
     return np.asarray(result.transformation).copy()
 
