@@ -179,16 +179,16 @@ def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(ge
 
 
 def test_a_pyramid_cloud_averages_its_coarse_levels_from_the_finest(generator):
-    src, _ = _room_pair(30000, torch.eye(4, dtype=torch.float64), generator)
-    exact, pyramid = RefineCloud(src, 0.05), RefineCloud(src, 0.05, pyramid=True)
+    src = _boxes(20000, ROOM, generator)
+    exact, pyramid = RefineCloud(src, 0.1), RefineCloud(src, 0.1, pyramid=True)
     finest = len(exact.levels) - 1
     assert torch.equal(pyramid.average(finest), exact.average(finest))
     for level in range(finest):
         a, b = exact.average(level), pyramid.average(level)
-        # the same surfaces: every pyramid average lies near an exact average of its level
+        # the same surfaces: the pyramid's averages lie near the exact averages of its level
         size = exact.levels[level][0]
         d = torch.cdist(b, a).min(dim=1).values
-        assert abs(len(a) - len(b)) <= 0.05 * len(a) and float(d.median()) < 0.1 * size
+        assert abs(len(a) - len(b)) <= 0.1 * len(a) and float(d.median()) < 0.1 * size
     assert refine_module.pair_cloud(src, 0.02).pyramid
 
 
