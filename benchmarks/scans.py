@@ -3,13 +3,15 @@
 Usage::
 
     python benchmarks/scans.py [--data ../shared/data] [--sequence tum_fr1_desk_full] \
-        [--out fr1_desk_bench] [--frames-per-fragment 25] [--fragments 11] \
+        [--out fr1_desk_bench] [--fragments DIR] [--frames-per-fragment 25] [--count 11] \
         [--features fpfh byoc] [--json results.json]
 
 1. ``byoc make-fragments`` fuses the sequence into fragments of ``--frames-per-fragment``
-   frames (TSDF fusion at the sequence's own poses; once: an earlier ``--out`` is reused);
-   its ``make-fragments.json`` holds each fragment's ``T_world_cam``, the ground truth.
-2. ``byoc register-scans`` places the first ``--fragments`` of them, once per ``--features``,
+   frames in ``OUT/fragments`` (TSDF fusion at the sequence's own poses; once: an earlier
+   ``--out`` is reused), or ``--fragments DIR`` names the folder of an earlier
+   ``make-fragments``; its ``make-fragments.json`` holds each fragment's ``T_world_cam``, the
+   ground truth.
+2. ``byoc register-scans`` places the first ``--count`` of them, once per ``--features``,
    each a separate process (whole-process wall and CPU seconds).
 3. Each placed fragment's pose is compared with the ground truth, both in the first
    fragment's frame: rotation (degrees) and translation (cm) of ``inv(T_gt) T``; the table
@@ -74,8 +76,9 @@ def _arguments() -> argparse.Namespace:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--sequence", default="tum_fr1_desk_full")
     parser.add_argument("--out", type=Path, default=Path("scans_bench"))
+    parser.add_argument("--fragments", type=Path, help="an earlier make-fragments folder")
     parser.add_argument("--frames-per-fragment", type=int, default=25)
-    parser.add_argument("--fragments", type=int, default=11)
+    parser.add_argument("--count", type=int, default=11)
     parser.add_argument("--features", nargs="+", default=list(FEATURES))
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -84,14 +87,16 @@ def _arguments() -> argparse.Namespace:
         parser.error(f"--features {unknown[0]!r}: one of {', '.join(FEATURES)}")
     if not (args.data / "rgbd" / args.sequence).is_dir():
         parser.error(f"--data {args.data}: no rgbd/{args.sequence} folder")
-    if args.fragments < 2 or args.frames_per_fragment < 1:
-        parser.error("--fragments must be >= 2 and --frames-per-fragment >= 1")
+    if args.fragments is not None and not (args.fragments / "make-fragments.json").is_file():
+        parser.error(f"--fragments {args.fragments}: no make-fragments.json")
+    if args.count < 2 or args.frames_per_fragment < 1:
+        parser.error("--count must be >= 2 and --frames-per-fragment >= 1")
     return args
 
 
 def main() -> None:
     args = _arguments()
-    fragments = args.out / "fragments"
+    fragments = args.fragments or args.out / "fragments"
     manifest_path = fragments / "make-fragments.json"
     if not manifest_path.exists():
         _byoc(
@@ -100,7 +105,7 @@ def main() -> None:
         )  # fmt: skip
     manifest = json.loads(manifest_path.read_text())
     truth = {f"cloud_bin_{f['index']}": np.asarray(f["T_world_cam"]) for f in manifest["fragments"]}
-    clouds = [str(fragments / args.sequence / f"cloud_bin_{k}.ply") for k in range(args.fragments)]
+    clouds = [str(fragments / args.sequence / f"cloud_bin_{k}.ply") for k in range(args.count)]
     rows = []
     for features in args.features:
         folder = args.out / f"scans-{features}"

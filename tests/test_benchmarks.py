@@ -97,4 +97,9 @@ def test_scans_refuses_unknown_features_or_a_missing_sequence_before_running(tmp
     )
     result = run("--features", "fpfh", "magic")
     assert result.returncode == 2 and "--features 'magic'" in result.stderr
+    result = run("--fragments", str(tmp_path))
+    assert (
+        result.returncode == 2
+        and f"--fragments {tmp_path}: no make-fragments.json" in result.stderr
+    )
     assert "$ byoc" not in result.stderr and not out.exists()
