@@ -66,6 +66,43 @@ def _errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
     return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(delta[:3, 3]))
 
 
+#: Open3D's coarse-to-fine ICP that register-scans and odometry ran before the one
+#: refinement stack: (voxel, correspondence distance) in multiples of the fine voxel
+OPEN3D_SCALES = ((4.0, 6.0), (2.0, 3.0), (1.0, 1.5))
+
+
+def _open3d_levels(points: np.ndarray, fine: float) -> list:
+    """Open3D clouds with normals at each of :data:`OPEN3D_SCALES`."""
+    import open3d as o3d
+
+    base = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    levels = []
+    for factor, _ in OPEN3D_SCALES:
+        cloud = base.voxel_down_sample(factor * fine)
+        cloud.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * factor * fine, max_nn=30)
+        )
+        levels.append(cloud)
+    return levels
+
+
+def _open3d_multiscale(src: list, tgt: list, T: np.ndarray, fine: float) -> np.ndarray:
+    """Open3D point-to-plane ICP at each of :data:`OPEN3D_SCALES` (30 iterations each)."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    for level, (_, distance) in enumerate(OPEN3D_SCALES):
+        T = reg.registration_icp(
+            src[level],
+            tgt[level],
+            distance * fine,
+            T,
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(max_iteration=30),
+        ).transformation
+    return np.asarray(T).copy()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", type=Path, required=True)
@@ -91,10 +128,10 @@ def main() -> int:
     parser.add_argument("--num-correspondences", type=int, action="append")
     args = parser.parse_args()
 
-    from byoc_cli.pipeline import posegraph
+    from byoc_cli.evaluation.methods import open3d_icp
     from byoc_cli.pipeline.features import ByocExtractor
     from byoc_cli.pipeline.refine import refine_multiscale
-    from byoc_cli.pipeline.register import RegisterConfig, estimate_transform, refine_icp
+    from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
     from byoc_cli.pipeline.weights import load_weights
 
     loaded = load_weights(args.weights)
@@ -107,7 +144,7 @@ def main() -> int:
         "mutual": [False],
         # ICP: none; on the kept points at 2 voxels (5 cm); on the full-resolution points at
         # 0.4 voxel (1 cm); multiscale-0.4: coarse to fine on the full-resolution points at
-        # 4, 2 and 1 times 0.4 voxel (posegraph.multiscale_icp)
+        # 4, 2 and 1 times 0.4 voxel (Open3D's ICP, _open3d_multiscale below)
         "icp": ["none", "kept-2.0", "full-0.4"],
     }
     for key, given in (
@@ -122,7 +159,7 @@ def main() -> int:
 
     def multiscale(key: str, points: torch.Tensor, fine: float):
         if (key, fine) not in prepared:
-            prepared[(key, fine)] = posegraph.prepare_cloud(points.double().numpy(), fine)
+            prepared[(key, fine)] = _open3d_levels(points.double().numpy(), fine)
         return prepared[(key, fine)]
 
     settings = [dict(zip(grid, v, strict=True)) for v in itertools.product(*grid.values())]
@@ -150,11 +187,12 @@ def main() -> int:
                             T = torch.as_tensor(np.asarray(T_gt), dtype=torch.float64)
                         if s["icp"].startswith("multiscale"):
                             fine = float(s["icp"].split("-")[1]) * voxel
-                            T = posegraph.multiscale_icp(
+                            T = _open3d_multiscale(
                                 multiscale(key_s, ps, fine),
                                 multiscale(key_t, pt, fine),
                                 T.double().numpy(),
-                            ).T_tgt_src
+                                fine,
+                            )
                             T = torch.from_numpy(T)
                         elif s["icp"].startswith("refine"):
                             held = {"sliding": 0.0} if s["icp"] == "refine-plain" else {}
@@ -162,7 +200,7 @@ def main() -> int:
                         elif s["icp"] != "none":
                             which, factor = s["icp"].split("-")
                             a, b = (fs.points, ft.points) if which == "kept" else (ps, pt)
-                            T = refine_icp(a, b, T, float(factor) * voxel)
+                            T = open3d_icp(a, b, T, float(factor) * voxel)
                         err = _errors(T.double().numpy(), T_gt)
                     except Exception:  # a failed fit counts as a failure
                         err = (180.0, 10.0)

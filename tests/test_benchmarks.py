@@ -81,3 +81,25 @@ def test_low_overlap_reports_of_other_weights_are_named_after_them(tmp_path):
     lines = result.stdout.splitlines()
     assert lines[-2].startswith("| lo: shipped |") and lines[-2].endswith("| 1.50 |")
     assert lines[-1] == "| fpfh | - | - | - | - | - |"  # FPFH reads no weights
+
+
+def test_scans_refuses_unknown_features_or_a_missing_sequence_before_running(tmp_path):
+    script = ROOT / "benchmarks" / "scans.py"
+    out = tmp_path / "bench"
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        command = [sys.executable, str(script), "--out", str(out), *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+    result = run("--data", str(tmp_path), "--features", "fpfh")
+    assert (
+        result.returncode == 2 and f"--data {tmp_path}: no rgbd/tum_fr1_desk_full" in result.stderr
+    )
+    result = run("--features", "fpfh", "magic")
+    assert result.returncode == 2 and "--features 'magic'" in result.stderr
+    result = run("--fragments", str(tmp_path))
+    assert (
+        result.returncode == 2
+        and f"--fragments {tmp_path}: no make-fragments.json" in result.stderr
+    )
+    assert "$ byoc" not in result.stderr and not out.exists()

@@ -390,7 +390,7 @@ class Registrar:
             src, tgt: :meth:`extract` results (same features, voxel size and scale).
             estimator: ``"ransac"`` or ``"procrustes"``.
             refine: ``"none"`` or ``"multiscale"`` (runs on ``Features.cloud`` where both have
-                one); ``"icp"`` is deprecated (a warning says so).
+                one).
             max_points: seeded random subset per cloud that enters matching (0 = all).
             num_correspondences: top-k ratio-test matches kept per direction.
             seed: seeds every random choice.
@@ -478,10 +478,6 @@ class Registrar:
         Raises:
             ValueError: a value out of its range (:class:`~byoc_cli.pipeline.recipe.RecipeError`).
         """
-        if refine == "icp":
-            from byoc_cli.pipeline.recipe import DEPRECATED_ICP
-
-            warnings.warn(DEPRECATED_ICP, DeprecationWarning, stacklevel=3)
         return self.recipe.changed(
             fitting__estimator=estimator,
             refinement__method=refine,

@@ -195,10 +195,10 @@ def test_options_given_change_the_recipe_file(tmp_path):
     path = tmp_path / "r.toml"
     path.write_text('preset = "fpfh"\n[matching]\nmax_points = 123\n')
     options = {"recipe_path": path, "max_points": None, "seed": 9, "estimator": "auto"}
-    options.update(refine="icp", other=1)
+    options.update(refine="none", other=1)
     got = build_recipe(options)
     assert options == {"other": 1}  # the recipe options are taken out
     assert (got.features.kind, got.matching.max_points, got.seed) == ("fpfh", 123, 9)
     assert got.fitting.estimator == PRESETS["fpfh"].fitting.estimator
-    assert got.refinement.method == "icp"  # deprecated (a warning), still Open3D's ICP
+    assert got.refinement.method == "none"
     assert got.gate.fallback == "none"  # the fallback is for learned features

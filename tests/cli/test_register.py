@@ -147,7 +147,7 @@ def test_same_seed_byte_identical_and_stdout(runner, random_weights, tmp_path):
     assert len(res.stdout.strip().splitlines()) == 4
 
 
-def test_ransac_estimator_and_icp_recover_synthetic(runner, tmp_path):
+def test_ransac_estimator_and_multiscale_recover_synthetic(runner, tmp_path):
     src, tgt, T_gt = _synthetic_pair(tmp_path)
     out = tmp_path / "T.txt"
     res = runner.invoke(
@@ -163,7 +163,7 @@ def test_ransac_estimator_and_icp_recover_synthetic(runner, tmp_path):
             "--estimator",
             "ransac",
             "--refine",
-            "icp",
+            "multiscale",
             "-o",
             str(out),
         ],
@@ -258,11 +258,11 @@ def test_bad_input_exit_1_one_line_no_output(runner, tmp_path, case):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".") or "tmp" in p.name]
 
 
-def test_default_register_needs_no_open3d_and_icp_says_it_does(
+def test_default_register_needs_no_open3d_and_fpfh_says_it_does(
     runner, random_weights, tmp_path, monkeypatch
 ):
     # the learned default (features, RANSAC, --refine multiscale) is plain PyTorch: it
-    # registers with open3d unimportable; --refine icp (Open3D's ICP) says what is missing
+    # registers with open3d unimportable; --features fpfh (Open3D's FPFH) says what is missing
     # in one line, exit 1, nothing written
     monkeypatch.setitem(sys.modules, "open3d", None)
     src, tgt, _ = _synthetic_pair(tmp_path)
@@ -274,11 +274,14 @@ def test_default_register_needs_no_open3d_and_icp_says_it_does(
     assert json.loads(report.read_text())["refine"] == "multiscale"
     out.unlink()
     report.unlink()
-    res = runner.invoke(cli, [*args, "--json", str(report), "--refine", "icp"])
+    res = runner.invoke(cli, [*args, "--json", str(report), "--features", "fpfh"])
     assert res.exit_code == 1, res.output
     lines = [ln for ln in res.stderr.splitlines() if ln.startswith("byoc: error")]
     assert len(lines) == 1 and "open3d" in lines[0], res.stderr
     assert not out.exists() and not report.exists()
+    # the single-scale Open3D ICP is gone: a usage error that lists what there is
+    res = runner.invoke(cli, [*args, "--refine", "icp"])
+    assert res.exit_code == 2 and "'multiscale'" in res.stderr, res.stderr
 
 
 def test_nan_points_dropped_with_warning(runner, tmp_path):

@@ -25,6 +25,7 @@ from byoc_cli.geometry.neighbors import (
     smallest_eigenvector,
     surface_normals,
     voxel_average,
+    voxel_means,
 )
 
 
@@ -41,6 +42,27 @@ def test_voxel_average_hand_case():
     out = voxel_average(pts, 0.1)
     expected = {(0.02, 0.03, 0.04), (0.15, 0.0, 0.0), (-0.05, 0.0, 0.0)}
     assert {tuple(round(v, 9) for v in p) for p in out.tolist()} == expected
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), size=st.sampled_from([0.02, 0.05, 0.2]))
+def test_voxel_means_weighted_by_counts_are_the_means_of_the_points(seed, size):
+    # a finer level's averages weighted by their counts: each coarse cell's average is the
+    # mean of the points whose fine average falls in it
+    pts = _cloud(800, seed)
+    fine, counts = voxel_means(pts, size / 4)
+    assert torch.equal(fine, voxel_average(pts, size / 4)) and int(counts.sum()) == len(pts)
+    coarse, weights = voxel_means(fine, size, counts)
+    assert int(weights.sum()) == len(pts)
+    owner = {}
+    fine_of = {tuple(math.floor(v / (size / 4)) for v in p): p for p in fine.tolist()}
+    for p in pts.tolist():
+        f = fine_of[tuple(math.floor(v / (size / 4)) for v in p)]
+        owner.setdefault(tuple(math.floor(v / size) for v in f), []).append(p)
+    assert len(coarse) == len(owner)
+    for p, w in zip(coarse.tolist(), weights.tolist(), strict=True):
+        group = owner[tuple(math.floor(v / size) for v in p)]
+        assert w == len(group) and np.allclose(p, np.mean(group, axis=0), atol=1e-12)
 
 
 @settings(max_examples=25, deadline=None)

@@ -79,10 +79,9 @@ def test_a_missing_recipe_file_is_an_input_error(tmp_path):
         load_recipe(tmp_path / "none.toml")
 
 
-def test_refinement_icp_is_deprecated_with_a_warning():
-    with pytest.warns(DeprecationWarning, match="deprecated"):
-        got = recipe_from_dict({"refinement": {"method": "icp"}})
-    assert got.refinement.method == "icp"
+def test_the_removed_refinement_icp_is_refused_by_name():
+    with pytest.raises(RecipeError, match=r"refinement\.method.*none, multiscale"):
+        recipe_from_dict({"refinement": {"method": "icp"}})
 
 
 def test_values_out_of_range_are_refused_in_code_too():

@@ -151,6 +151,65 @@ def test_searches_side_by_side_give_the_same_bytes(generator, monkeypatch):
     assert split.conditioning == alone.conditioning
 
 
+def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(generator):
+    o3d = pytest.importorskip("open3d")
+    import numpy as np
+
+    T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
+    src, tgt = _room_pair(30000, T_true, generator)
+    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    assert refine_module.icp_voxel(a) == pytest.approx(0.02)
+    assert refine_module.enough_points(a) and refine_module.enough_points(b)
+    fit = refine_module.refine_pair(a, b, np.eye(4))
+    rot, trans = _pose_error(torch.from_numpy(fit.T_tgt_src), T_true)
+    assert rot < 0.5 and trans < 0.005
+    assert fit.fitness > 0.5 and 0 < fit.rmse < 0.02  # metres (sparse samples: a 3 cm gate)
+    # the information matrix Open3D's pose graph reads, computed on the same finest points
+    level = len(a.levels) - 1
+    pcd_a = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a.source(level).numpy()))
+    pcd_b = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b.target(level)[0].numpy()))
+    distance = refine_module.FINE_DISTANCE * 0.02
+    theirs = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        pcd_a, pcd_b, distance, fit.T_tgt_src
+    )
+    theirs = np.asarray(theirs)
+    assert np.linalg.norm(fit.information - theirs) < 1e-3 * np.linalg.norm(theirs)
+    # a cloud without points at a level is not enough for a pair
+    assert not refine_module.enough_points(refine_module.pair_cloud(src[:5], 0.02))
+
+
+def test_a_pyramid_cloud_averages_its_coarse_levels_from_the_finest(generator):
+    src = _boxes(20000, ROOM, generator)
+    exact, pyramid = RefineCloud(src, 0.1), RefineCloud(src, 0.1, pyramid=True)
+    finest = len(exact.levels) - 1
+    assert torch.equal(pyramid.average(finest), exact.average(finest))
+    for level in range(finest):
+        a, b = exact.average(level), pyramid.average(level)
+        # the same surfaces: the pyramid's averages lie near the exact averages of its level
+        size = exact.levels[level][0]
+        d = torch.cdist(b, a).min(dim=1).values
+        assert abs(len(a) - len(b)) <= 0.1 * len(a) and float(d.median()) < 0.1 * size
+    assert refine_module.pair_cloud(src, 0.02).pyramid
+
+
+def test_a_pair_refinement_measures_its_information_only_when_read(generator, monkeypatch):
+    import numpy as np
+
+    T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
+    src, tgt = _room_pair(20000, T_true, generator)
+    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    calls = []
+    measure = refine_module.information_matrix
+    monkeypatch.setattr(
+        refine_module, "information_matrix", lambda *args: calls.append(1) or measure(*args)
+    )
+    fit = refine_module.refine_pair(a, b, np.eye(4))
+    assert calls == []
+    first = fit.information
+    assert calls == [1] and first.shape == (6, 6) and fit.information is first
+    assert calls == [1]
+
+
 def test_restarts_come_back_to_a_right_result_of_distinct_geometry(generator):
     T_true = _motion([0.1, -0.2, 0.15], [0.1, 0.2, -0.05])
     src, tgt = _room_pair(40_000, T_true, generator)

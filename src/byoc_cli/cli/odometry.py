@@ -194,7 +194,8 @@ def _print_eval(report: dict, name: str) -> None:
         "--icp-voxel",
         type=VOXEL,
         default=0.025,
-        help="Finest ICP voxel, metres (ICP at 4x, 2x, 1x).",
+        help="Finest voxel of the refinement (the multiscale point-to-plane ICP of byoc "
+        "register; its coarser levels scale with it), metres.",
     ),
     float_option("--max-depth", type=LENGTH, default=4.0, help="Drop depth beyond this, metres."),
     int_option("--frame-stride", min=1, default=1, help="Use every N-th frame."),

@@ -78,11 +78,11 @@ def _options() -> dict[str, Callable]:
         ),
         "refine": click.option(
             "--refine",
-            type=click.Choice(["auto", "none", "icp", "multiscale"]),
+            type=click.Choice(["auto", "none", "multiscale"]),
             default=None,
             help="multiscale: coarse-to-fine point-to-plane ICP on the full clouds that holds "
-            "directions the geometry leaves free; icp: deprecated (Open3D's single-scale ICP "
-            f"on the kept points); auto: the recipe's. {_default('refinement.method')}",
+            "directions the geometry leaves free; none: the robust fit as it is; auto: the "
+            f"recipe's. {_default('refinement.method')}",
         ),
         "max_points": int_option(
             "--max-points",
@@ -173,13 +173,11 @@ def build_recipe(options: dict[str, Any]) -> recipes.RegistrationRecipe:
 
     ``recipe_path`` (``--recipe``) or the preset of ``features`` is the base; every other
     option given (not None, not ``auto`` for ``--estimator`` and ``--refine``) changes it.
-    ``--refine icp`` is deprecated (a warning says so).
 
     Raises:
         InputError: the ``--recipe`` file cannot be read or holds an unusable recipe.
         click.BadParameter: an option that does not go with the recipe.
     """
-    import logging
 
     path: Path | None = options.pop("recipe_path", None)
     given = {name: options.pop(name) for name in list(options) if name in FIELDS}
@@ -192,8 +190,6 @@ def build_recipe(options: dict[str, Any]) -> recipes.RegistrationRecipe:
     for name in ("estimator", "refine"):
         if given.get(name) == "auto":
             given[name] = None
-    if given.get("refine") == "icp":
-        logging.getLogger("byoc").warning("--refine icp: %s", recipes.DEPRECATED_ICP)
     given.pop("features", None)
     if given.get("weights") is not None:
         given["weights"] = str(given["weights"])

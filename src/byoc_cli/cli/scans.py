@@ -181,7 +181,8 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
         "--icp-voxel",
         type=VOXEL,
         default=0.02,
-        help="Finest voxel of the multi-scale ICP refinement, metres (ICP at 4x, 2x, 1x).",
+        help="Finest voxel of the refinement (the multiscale point-to-plane ICP of byoc "
+        "register; its coarser levels scale with it), metres.",
     ),
     float_option(
         "--min-fitness",

@@ -42,7 +42,6 @@ from byoc_cli.pipeline.recipe import PAPER, PRESETS, RegistrationRecipe
 from byoc_cli.pipeline.register import (
     RegisterConfig,
     estimate_transform,
-    refine_icp,
     register_config,
 )
 
@@ -58,6 +57,7 @@ __all__ = [
     "build_methods",
     "feature_specs",
     "icp_points",
+    "open3d_icp",
     "parse_method_names",
     "weights_labels",
 ]
@@ -90,6 +90,50 @@ RECIPES: dict[str, RegistrationRecipe] = {
     "fpfh-ransac": PRESETS["fpfh"],
     "fpfh-procrustes": PAPER,
 }
+
+
+def open3d_icp(
+    points_src: torch.Tensor,
+    points_tgt: torch.Tensor,
+    T_init: torch.Tensor,
+    max_distance: float,
+    *,
+    point_to_plane: bool = True,
+    max_iteration: int = ICP_MAX_ITERATION,
+) -> torch.Tensor:
+    """Open3D's ICP from ``T_init``, the classical baselines ``icp-point`` and ``icp-plane``;
+    returns the refined ``T_tgt_src``.
+
+    Args:
+        points_src, points_tgt: ``(N, 3)`` and ``(M, 3)`` points.
+        T_init: ``(4, 4)`` initial ``T_tgt_src``.
+        max_distance: largest correspondence distance, in the units of the points.
+        point_to_plane: point-to-plane (target normals from 30 neighbours within
+            ``2 * max_distance``); False: point-to-point.
+        max_iteration: ICP iterations at most.
+    """
+    from byoc_cli.errors import require_open3d
+
+    o3d = require_open3d()
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_src.double().numpy()))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_tgt.double().numpy()))
+    if point_to_plane:
+        tgt.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30)
+        )
+        estimation = reg.TransformationEstimationPointToPlane()
+    else:
+        estimation = reg.TransformationEstimationPointToPoint()
+    out = reg.registration_icp(
+        src,
+        tgt,
+        max_distance,
+        T_init.double().numpy(),
+        estimation,
+        reg.ICPConvergenceCriteria(max_iteration=max_iteration),
+    )
+    return torch.from_numpy(out.transformation.copy()).to(torch.float64)
 
 
 def _config(kind: str, max_points: int) -> RegisterConfig:
@@ -216,7 +260,7 @@ class Method:
             if self.kind == "identity":
                 return MethodOutput(eye, False, None)
             if self.kind in ("icp-point", "icp-plane"):
-                T = refine_icp(
+                T = open3d_icp(
                     points_src,
                     points_tgt,
                     eye,

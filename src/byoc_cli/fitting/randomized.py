@@ -13,6 +13,11 @@ from byoc_cli.fitting.procrustes import (
     weighted_procrustes,
 )
 
+#: candidates of randomized Procrustes and correspondences per candidate (the paper's
+#: section 3.1; the registration recipe's defaults)
+NUM_SUBSETS = 100
+SUBSET_SIZE = 20
+
 
 def default_generator(device: torch.device | str = "cpu") -> torch.Generator:
     """The generator used when none is given: seeded with 0 (never the global RNG)."""
@@ -23,8 +28,8 @@ def randomized_procrustes(
     points_src: torch.Tensor,
     points_tgt: torch.Tensor,
     weight: torch.Tensor | None = None,
-    num_subsets: int = 100,
-    subset_size: int = 20,
+    num_subsets: int = NUM_SUBSETS,
+    subset_size: int = SUBSET_SIZE,
     generator: torch.Generator | None = None,
     inlier_threshold: float | None = None,
 ) -> FitResult:

@@ -18,6 +18,11 @@ from byoc_cli.fitting.procrustes import (
 )
 from byoc_cli.fitting.randomized import default_generator
 
+#: RANSAC's limits: at most this many minimal sets, fewer once the best inlier share makes
+#: this confidence of having drawn an all-inlier set (the registration recipe's defaults)
+MAX_ITERATIONS = 100_000
+CONFIDENCE = 0.999
+
 #: Upper bound on ``batch * K`` squared residuals scored at once (16 MB in float32, 32 MB in
 #: float64).
 SCORE_BUDGET = 2**22
@@ -136,8 +141,8 @@ def ransac(
     points_src: torch.Tensor,
     points_tgt: torch.Tensor,
     inlier_threshold: float,
-    max_iterations: int = 100_000,
-    confidence: float = 0.999,
+    max_iterations: int = MAX_ITERATIONS,
+    confidence: float = CONFIDENCE,
     generator: torch.Generator | None = None,
     **tuning: Any,
 ) -> FitResult:

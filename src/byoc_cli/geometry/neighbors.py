@@ -97,11 +97,31 @@ def voxel_average(points: torch.Tensor, size: float) -> torch.Tensor:
         points: ``(N, 3)`` points.
         size: cell edge (metres).
     """
+    return voxel_means(points, size)[0]
+
+
+def voxel_means(
+    points: torch.Tensor, size: float, weights: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The weighted average of the points in each occupied cell of ``size``, and the cell's
+    total weight: ``(K, 3)`` and ``(K,)``, in key order. Averages of averages with their
+    weights (their point counts) are a coarser level of a pyramid built from a finer one.
+
+    Args:
+        points: ``(N, 3)`` points.
+        size: cell edge (metres).
+        weights: ``(N,)`` positive weights; None: 1 each (the weights out are the counts).
+    """
     keys = cell_keys(_cells(points, size, grid_origin(points, size)))
     uniq, inverse = torch.unique(keys, return_inverse=True)
-    sums = torch.zeros(len(uniq), 3, dtype=points.dtype).index_add_(0, inverse, points)
-    counts = torch.bincount(inverse, minlength=len(uniq)).to(points.dtype)
-    return sums / counts[:, None]
+    sums = torch.zeros(len(uniq), 3, dtype=points.dtype)
+    if weights is None:
+        sums.index_add_(0, inverse, points)
+        total = torch.bincount(inverse, minlength=len(uniq)).to(points.dtype)
+    else:
+        sums.index_add_(0, inverse, points * weights[:, None])
+        total = torch.zeros(len(uniq), dtype=points.dtype).index_add_(0, inverse, weights)
+    return sums / total[:, None], total
 
 
 #: most cells (padding included) a :class:`DenseCells` table may have: 16 MB of int32

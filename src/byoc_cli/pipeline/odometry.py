@@ -1,9 +1,11 @@
 """Depth odometry: the camera trajectory of an RGB-D video by frame-to-keyframe ICP.
 
-For each frame (sub-sampled by ``frame_stride``), back-projected and voxelised
-(:func:`byoc_cli.pipeline.posegraph.prepare_cloud`):
+For each frame (sub-sampled by ``frame_stride``), back-projected and prepared for the
+refinement (:func:`byoc_cli.pipeline.refine.pair_cloud`):
 
-1. coarse-to-fine point-to-plane ICP onto the current KEYFRAME, started from the constant
+1. coarse-to-fine point-to-plane ICP (:func:`byoc_cli.pipeline.refine.refine_pair`, the
+   refinement of ``byoc register``, at the finest voxel ``voxel_size``) onto the current
+   KEYFRAME, started from the constant
    velocity prediction (the last frame-to-frame motion applied once more); if that does not
    fit (fitness, RMSE), from the previous frame's pose; if neither fits, from a GLOBAL start
    (``global_start``: FPFH + RANSAC by default, the learned features in ``byoc odometry
@@ -33,7 +35,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.pipeline import posegraph
+from byoc_cli.pipeline import posegraph, refine
+from byoc_cli.pipeline.refine import PairFit, RefineCloud
 
 #: frame points farther than this from the camera are dropped (Kinect noise grows with z^2)
 DEFAULT_MAX_DEPTH = 4.0
@@ -47,7 +50,8 @@ class OdometryConfig:
     """Settings of :func:`estimate_trajectory` (serialisable with :func:`dataclasses.asdict`).
 
     Attributes:
-        voxel_size: the finest ICP voxel, metres (ICP runs at 4, 2 and 1 times it).
+        voxel_size: the finest ICP voxel, metres (the refinement's levels run at 2.5, 1.25
+            and 1 times it).
         max_depth: points farther from the camera are dropped, metres.
         frame_stride: use every ``frame_stride``-th frame.
         max_frames: use at most this many frames (0: all).
@@ -129,38 +133,45 @@ def used_frames(num_frames: int, config: OdometryConfig) -> list[int]:
     return frames[: config.max_frames] if config.max_frames else frames
 
 
-def _fits(est: posegraph.PairEstimate, config: OdometryConfig) -> bool:
+def _fits(est: PairFit, config: OdometryConfig) -> bool:
     return est.fitness >= config.min_fitness and est.rmse <= config.max_rmse
 
 
 def _global_start_of(global_start: GlobalStart | None, config: OdometryConfig) -> Callable:
-    """The global start on prepared clouds: ``global_start`` on their finest level, or
-    FPFH + RANSAC (:func:`byoc_cli.pipeline.posegraph.fpfh_ransac`)."""
+    """The global start on prepared clouds: ``global_start`` on their finest level's points,
+    or FPFH + RANSAC (:func:`byoc_cli.pipeline.posegraph.fpfh_ransac`)."""
 
-    def start(src: posegraph.PreparedCloud, tgt: posegraph.PreparedCloud) -> np.ndarray:
+    def start(src: RefineCloud, tgt: RefineCloud) -> np.ndarray:
         if global_start is None:
-            return posegraph.fpfh_ransac(src, tgt, seed=config.seed)
-        return global_start(np.asarray(src.levels[-1].points), np.asarray(tgt.levels[-1].points))
+            return posegraph.fpfh_ransac(
+                src.points.numpy(), tgt.points.numpy(), config.voxel_size, seed=config.seed
+            )
+        return global_start(fine_points(src), fine_points(tgt))
 
     return start
 
 
+def fine_points(cloud: RefineCloud) -> np.ndarray:
+    """``(N, 3)`` float64 points of a prepared cloud's finest level (voxel averages)."""
+    return cloud.average(len(cloud.levels) - 1).numpy()
+
+
 def _track(
-    cloud: posegraph.PreparedCloud,
-    key: posegraph.PreparedCloud,
+    cloud: RefineCloud,
+    key: RefineCloud,
     T_key_prev: np.ndarray,
     velocity: np.ndarray,
     global_start: Callable,
     config: OdometryConfig,
-) -> tuple[str, posegraph.PairEstimate]:
+) -> tuple[str, PairFit]:
     """Register a frame onto its keyframe; returns the start that fitted (or the best try)."""
     tries = []
     for origin, start in (("velocity", T_key_prev @ velocity), ("previous", T_key_prev)):
-        est = posegraph.multiscale_icp(cloud, key, start)
+        est = refine.refine_pair(cloud, key, start)
         if _fits(est, config):
             return origin, est
         tries.append((origin, est))
-    est = posegraph.multiscale_icp(cloud, key, global_start(cloud, key))
+    est = refine.refine_pair(cloud, key, global_start(cloud, key))
     tries.append(("global", est))
     return max(tries, key=lambda t: (_fits(t[1], config), t[1].fitness, -t[1].rmse))
 
@@ -189,19 +200,19 @@ class _Tracked(NamedTuple):
 
 
 def _tracking_pass(
-    load: Callable[[int], posegraph.PreparedCloud],
+    load: Callable[[int], RefineCloud],
     num: int,
     global_start: Callable,
     config: OdometryConfig,
     stats: dict[str, int],
     progress: Callable[[int, int], None],
-    key_clouds: dict[int, posegraph.PreparedCloud],
+    key_clouds: dict[int, RefineCloud],
     first: str = "the sequence",
 ) -> _Tracked:
     key_cloud = load(0)
-    if not posegraph.enough_points(key_cloud):
+    if not refine.enough_points(key_cloud):
         raise RegistrationError(
-            f"{first}: the first frame has fewer than {posegraph.MIN_ICP_POINTS} points within "
+            f"{first}: the first frame has fewer than {refine.MIN_PAIR_POINTS} points within "
             f"{config.max_depth:g} m at an ICP voxel of {config.voxel_size:g} m (check the depth "
             "scale, the maximum depth and the ICP voxel)"
         )
@@ -213,7 +224,7 @@ def _tracking_pass(
         cloud = load(k)
         kf = tr.keyframes[-1]
         T_key_prev = np.linalg.inv(tr.poses[kf]) @ tr.poses[k - 1]
-        usable = posegraph.enough_points(cloud)
+        usable = refine.enough_points(cloud)
         if usable:
             origin, est = _track(cloud, key_cloud, T_key_prev, velocity, global_start, config)
         if usable and _fits(est, config):
@@ -252,7 +263,7 @@ def _tracking_pass(
 
 def _loop_edges(
     tr: _Tracked,
-    key_clouds: dict[int, posegraph.PreparedCloud],
+    key_clouds: dict[int, RefineCloud],
     config: OdometryConfig,
     stats: dict[str, int],
 ) -> list[posegraph.Edge]:
@@ -270,7 +281,7 @@ def _loop_edges(
         for _, a in sorted(near)[: config.loop_max_candidates]:
             stats["loops_tried"] += 1
             T_a_b = np.linalg.inv(poses[a]) @ poses[b]
-            est = posegraph.multiscale_icp(
+            est = refine.refine_pair(
                 key_clouds[tr.keyframes[b]], key_clouds[tr.keyframes[a]], T_a_b
             )
             if est.fitness >= config.loop_min_fitness and est.rmse <= config.max_rmse:
@@ -292,7 +303,7 @@ def _optimise(tr: _Tracked, loops: list[posegraph.Edge], config: OdometryConfig,
             continue
         initial = [tr.poses[tr.keyframes[n]] for n in nodes]
         optimised, kept = posegraph.optimize_pose_graph(
-            initial, edges, posegraph.ICP_SCALES[-1][1] * config.voxel_size
+            initial, edges, refine.FINE_DISTANCE * config.voxel_size
         )
         anchor = initial[0] @ np.linalg.inv(optimised[0])
         for n, pose in zip(nodes, optimised, strict=True):
@@ -331,10 +342,10 @@ def estimate_trajectory(
         raise RegistrationError("the sequence has no frame to track")
     timings = {"load": 0.0, "track": 0.0, "pose_graph": 0.0}
 
-    def load(k: int) -> posegraph.PreparedCloud:
+    def load(k: int) -> RefineCloud:
         start = time.perf_counter()
         points = frame_points(sequence, frames[k], config.max_depth)
-        cloud = posegraph.prepare_cloud(points, config.voxel_size)
+        cloud = refine.pair_cloud(points, config.voxel_size)
         timings["load"] += time.perf_counter() - start
         return cloud
 
@@ -343,7 +354,7 @@ def estimate_trajectory(
         ["start_velocity", "start_previous", "start_global", "lost", "keyframes"], 0
     )
     stats.update(loops_tried=0, loops_kept=0, loops_pruned=0)
-    key_clouds: dict[int, posegraph.PreparedCloud] = {}
+    key_clouds: dict[int, RefineCloud] = {}
     started = time.perf_counter()
     first = str(sequence.frames[frames[0]].depth_path)
     tr = _tracking_pass(load, len(frames), start_fn, config, stats, report, key_clouds, first)

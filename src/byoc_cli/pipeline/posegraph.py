@@ -1,8 +1,10 @@
-"""Pairwise ICP and pose graphs over many clouds (Open3D, imported lazily).
+"""Pose graphs over many clouds and FPFH + RANSAC starts (Open3D, imported lazily).
 
-Shared by the self-posed training pairs (``byoc_cli.training.pseudo_poses``) and by any
-multi-cloud registration. Clouds are ``(N, 3)`` float numpy arrays in metres. Transforms
-follow the package convention: ``T_tgt_src`` is ``(4, 4)`` float64 on column vectors. A
+Shared by the self-posed training pairs (``byoc_cli.training.pseudo_poses``), ``odometry``
+and ``register-scans``; their pairs are refined by
+:func:`byoc_cli.pipeline.refine.refine_pair`. Clouds are ``(N, 3)`` float numpy arrays in
+metres. Transforms follow the package convention: ``T_tgt_src`` is ``(4, 4)`` float64 on
+column vectors. A
 pose graph holds ``T_world_node`` per node; an edge ``(s, t)`` carries ``T_t_s`` (maps node
 ``s`` into node ``t``) and a 6x6 information matrix (Open3D's order: rotation, translation).
 """
@@ -10,17 +12,17 @@ pose graph holds ``T_world_node`` per node; an edge ``(s, t)`` carries ``T_t_s``
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from byoc_cli.errors import require_open3d
+from byoc_cli.fitting.ransac import CONFIDENCE, MAX_ITERATIONS
 
-#: normals from at most this many neighbours within 2 voxels
+#: normals from at most this many neighbours within 2 voxels (FPFH's cloud)
 NORMAL_MAX_NN = 30
-#: ICP scales as multiples of the fine voxel: (voxel factor, correspondence distance factor)
-ICP_SCALES = ((4.0, 6.0), (2.0, 3.0), (1.0, 1.5))
-ICP_ITERATIONS = (30, 30, 30)
+#: FPFH + RANSAC runs at this multiple of the finest ICP voxel
+FPFH_VOXEL_FACTOR = 4.0
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
@@ -35,96 +37,36 @@ def transform_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float
     return rotation_angle_deg(delta[:3, :3]), float(np.linalg.norm(delta[:3, 3]))
 
 
-class PreparedCloud(NamedTuple):
-    """One cloud at the ICP scales: ``levels[k]`` is an Open3D cloud with normals."""
-
-    levels: list[Any]
-    voxel_size: float
-
-
-class PairEstimate(NamedTuple):
-    """An ICP result.
-
-    Attributes:
-        T_tgt_src: ``(4, 4)`` float64.
-        fitness: share of source points with a target point within the finest distance.
-        rmse: RMS distance of those inlier pairs (metres).
-        information: ``(6, 6)`` Open3D information matrix at the finest distance.
-    """
-
-    T_tgt_src: np.ndarray
-    fitness: float
-    rmse: float
-    information: np.ndarray
-
-
-def prepare_cloud(points: np.ndarray, voxel_size: float) -> PreparedCloud:
-    """Voxel-downsample ``points (N, 3)`` at each ICP scale and estimate normals."""
+def _fpfh_cloud(points: np.ndarray, size: float):
+    """``points (N, 3)`` voxel-downsampled at ``size`` with normals (Open3D)."""
     o3d = require_open3d()
     base = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    levels = []
-    for voxel_factor, _ in ICP_SCALES:
-        size = voxel_factor * voxel_size
-        cloud = base.voxel_down_sample(size)
-        cloud.estimate_normals(
-            o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * size, max_nn=NORMAL_MAX_NN)
-        )
-        levels.append(cloud)
-    return PreparedCloud(levels, float(voxel_size))
-
-
-#: fewest points per level for ICP (normals, point-to-plane) to be meaningful
-MIN_ICP_POINTS = 10
-
-
-def enough_points(cloud: PreparedCloud, min_points: int = MIN_ICP_POINTS) -> bool:
-    """True when every level of ``cloud`` has at least ``min_points`` points (Open3D's ICP
-    fails on an empty target and means nothing on a handful of points)."""
-    return all(len(level.points) >= min_points for level in cloud.levels)
-
-
-def multiscale_icp(src: PreparedCloud, tgt: PreparedCloud, T_init: np.ndarray) -> PairEstimate:
-    """Coarse-to-fine point-to-plane ICP of ``src`` onto ``tgt`` from ``T_init (4, 4)``."""
-    o3d = require_open3d()
-    reg = o3d.pipelines.registration
-    T = np.asarray(T_init, np.float64)
-    result = None
-    for level, ((voxel_factor, dist_factor), iters) in enumerate(
-        zip(ICP_SCALES, ICP_ITERATIONS, strict=True)
-    ):
-        del voxel_factor
-        dist = dist_factor * src.voxel_size
-        result = reg.registration_icp(
-            src.levels[level],
-            tgt.levels[level],
-            dist,
-            T,
-            reg.TransformationEstimationPointToPlane(),
-            reg.ICPConvergenceCriteria(max_iteration=iters),
-        )
-        T = np.asarray(result.transformation)
-    dist = ICP_SCALES[-1][1] * src.voxel_size
-    info = reg.get_information_matrix_from_point_clouds(src.levels[-1], tgt.levels[-1], dist, T)
-    return PairEstimate(
-        T.copy(), float(result.fitness), float(result.inlier_rmse), np.asarray(info)
+    cloud = base.voxel_down_sample(size)
+    cloud.estimate_normals(
+        o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * size, max_nn=NORMAL_MAX_NN)
     )
+    return cloud
 
 
-def fpfh_ransac(src: PreparedCloud, tgt: PreparedCloud, seed: int = 0) -> np.ndarray:
-    """Global FPFH + RANSAC (Open3D, on the coarsest ICP level); returns ``T_tgt_src``."""
+def fpfh_ransac(
+    points_src: np.ndarray, points_tgt: np.ndarray, icp_voxel: float, seed: int = 0
+) -> np.ndarray:
+    """Global FPFH + RANSAC (Open3D) of ``points_src (N, 3)`` onto ``points_tgt (M, 3)`` at
+    ``FPFH_VOXEL_FACTOR`` times the finest ICP voxel; returns ``T_tgt_src``."""
     o3d = require_open3d()
     reg = o3d.pipelines.registration
-    size = ICP_SCALES[0][0] * src.voxel_size
+    size = FPFH_VOXEL_FACTOR * icp_voxel
+    clouds = [_fpfh_cloud(points, size) for points in (points_src, points_tgt)]
     feats = [
         reg.compute_fpfh_feature(
-            cloud.levels[0], o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * size, max_nn=100)
+            cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * size, max_nn=100)
         )
-        for cloud in (src, tgt)
+        for cloud in clouds
     ]
     o3d.utility.random.seed(seed)
     result = reg.registration_ransac_based_on_feature_matching(
-        src.levels[0],
-        tgt.levels[0],
+        clouds[0],
+        clouds[1],
         feats[0],
         feats[1],
         True,
@@ -135,7 +77,7 @@ def fpfh_ransac(src: PreparedCloud, tgt: PreparedCloud, seed: int = 0) -> np.nda
             reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
             reg.CorrespondenceCheckerBasedOnDistance(1.5 * size),
         ],
-        reg.RANSACConvergenceCriteria(100_000, 0.999),
+        reg.RANSACConvergenceCriteria(MAX_ITERATIONS, CONFIDENCE),
     )
     return np.asarray(result.transformation).copy()
 

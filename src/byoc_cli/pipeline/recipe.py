@@ -25,29 +25,22 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
+from byoc_cli.fitting.randomized import NUM_SUBSETS, SUBSET_SIZE
+from byoc_cli.fitting.ransac import CONFIDENCE, MAX_ITERATIONS
 from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 #: feature types
 FEATURE_KINDS = ("byoc", "fpfh")
 #: robust estimators
 ESTIMATORS = ("procrustes", "ransac")
-#: refinements after the robust fit (``"icp"``, Open3D's single-scale ICP on the kept points,
-#: is deprecated: a recipe file that names it gets a warning)
-REFINEMENTS = ("none", "multiscale", "icp")
+#: refinements after the robust fit
+REFINEMENTS = ("none", "multiscale")
 #: what runs below the gate
 FALLBACKS = ("none", "fpfh")
-
-
-#: what a recipe, an option or the API says of the deprecated refinement
-DEPRECATED_ICP = (
-    "refinement 'icp' (Open3D's single-scale ICP on the kept points) is deprecated and will be "
-    "removed: 'multiscale' refines better and needs no open3d (docs/registering.md)"
-)
 
 
 class RecipeError(ValueError):
@@ -105,10 +98,10 @@ class FittingRecipe:
 
     estimator: str = "ransac"
     inlier_factor: float = 2.0
-    ransac_iterations: int = 100_000
-    ransac_confidence: float = 0.999
-    num_subsets: int = 100
-    subset_size: int = 20
+    ransac_iterations: int = MAX_ITERATIONS
+    ransac_confidence: float = CONFIDENCE
+    num_subsets: int = NUM_SUBSETS
+    subset_size: int = SUBSET_SIZE
 
 
 @dataclass(frozen=True)
@@ -117,8 +110,8 @@ class RefinementRecipe:
 
     Attributes:
         method: ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`:
-            coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held),
-            ``"none"``, or the deprecated ``"icp"`` (Open3D's ICP on the kept points).
+            coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held)
+            or ``"none"``.
         restarts: after ``"multiscale"``, refine again from starts turned around the result
             and keep the better end (:func:`byoc_cli.pipeline.refine.restart_refinement`).
     """
@@ -384,8 +377,6 @@ def recipe_from_dict(data: Mapping[str, Any]) -> RegistrationRecipe:
         for name, value in table.items():
             if name not in names:
                 raise RecipeError(f"unknown field {stage}.{name} (known: {', '.join(names)})")
-            if stage == "refinement" and name == "method" and value == "icp":
-                warnings.warn(DEPRECATED_ICP, DeprecationWarning, stacklevel=2)
             values[f"{stage}.{name}"] = value
     try:
         return with_values(base, values)

@@ -42,6 +42,7 @@ from byoc_cli.geometry.neighbors import (
     nearest_of,
     surface_normals,
     voxel_average,
+    voxel_means,
 )
 
 #: (voxel, correspondence distance) per level, in multiples of the feature voxel size
@@ -109,31 +110,50 @@ class RefineCloud:
     Args:
         points: ``(N, 3)`` points (metres), a tensor or an array.
         voxel_size: the feature voxel ``v`` the levels scale with.
+        pyramid: average the points at the finest level only and each coarser level from
+            the finer level's averages, weighted by their point counts (one pass over the
+            points instead of one per level; a point near a coarse cell's border may go
+            with its fine cell's average to the cell next door): for the many
+            full-resolution frames of ``odometry``, ``register-scans`` and the self-posed
+            pairs.
     """
 
-    def __init__(self, points: torch.Tensor | np.ndarray, voxel_size: float) -> None:
+    def __init__(
+        self, points: torch.Tensor | np.ndarray, voxel_size: float, pyramid: bool = False
+    ) -> None:
         if not isinstance(points, torch.Tensor):
             points = torch.from_numpy(np.asarray(points))
         self.points = points.detach().to(device="cpu", dtype=torch.float64)
         self.voxel_size = float(voxel_size)
         self.levels = _level_geometry(self.voxel_size)
+        self.pyramid = pyramid
+        self._weights: dict[int, torch.Tensor] = {}  # pyramid: points per average
         self._averages: dict[int, torch.Tensor] = {}
         self._sources: dict[tuple[int, int], torch.Tensor] = {}
         self._targets: dict[int, tuple[torch.Tensor, torch.Tensor, CellIndex]] = {}
         # one lock per level: levels are built side by side, each once
         self._locks = [threading.RLock() for _ in self.levels]
 
-    def _average(self, level: int) -> torch.Tensor:
+    def average(self, level: int) -> torch.Tensor:
+        """``(M, 3)`` voxel averages of the points at ``level``'s voxel."""
         with self._locks[level]:
             if level not in self._averages:
-                self._averages[level] = voxel_average(self.points, self.levels[level][0])
+                size = self.levels[level][0]
+                if not self.pyramid:
+                    self._averages[level] = voxel_average(self.points, size)
+                elif level == len(self.levels) - 1:
+                    self._averages[level], self._weights[level] = voxel_means(self.points, size)
+                else:  # the finer level first (its lock after this one's: no cycle)
+                    finer = self.average(level + 1)
+                    means = voxel_means(finer, size, self._weights[level + 1])
+                    self._averages[level], self._weights[level] = means
             return self._averages[level]
 
     def source(self, level: int, max_points: int = MAX_SOURCE_POINTS) -> torch.Tensor:
         """``(K, 3)`` source points of ``level``, ``K <= max_points`` (an even stride)."""
         with self._locks[level]:
             if (level, max_points) not in self._sources:
-                p = self._average(level)
+                p = self.average(level)
                 self._sources[level, max_points] = p[:: max(1, -(-len(p) // max_points))]
             return self._sources[level, max_points]
 
@@ -143,7 +163,7 @@ class RefineCloud:
         with self._locks[level]:
             if level not in self._targets:
                 size, _, radius = self.levels[level]
-                q = self._average(level)
+                q = self.average(level)
                 n = surface_normals(q, NORMAL_CELL * radius)
                 self._targets[level] = (q, n, CellIndex(q, size, SEARCH_REACH[level]))
             return self._targets[level]
@@ -157,6 +177,13 @@ class RefineCloud:
                 self.source(level)
             if target:
                 self.target(level)
+        return self
+
+    def drop_points(self) -> RefineCloud:
+        """Build every level, then keep the finest level's voxel averages in place of the
+        full-resolution points (a cloud kept for a long time: a sequence's frames); ``self``."""
+        self.prepare()
+        self.points = self.average(len(self.levels) - 1)
         return self
 
 
@@ -325,6 +352,118 @@ def _threads(count: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+# ------------------------------------------------------------------ pairs of many clouds
+
+#: the finest ICP voxel ``w`` of ``register-scans`` and ``odometry`` as a multiple of the
+#: refinement's voxel ``v``: the finest level (``0.4v``); the levels are then
+#: ``(2.5w, 5w)``, ``(1.25w, 2.5w)``, ``(w, 1.5w)``
+FINE_VOXEL = LEVELS[-1][0]
+#: the finest correspondence distance as a multiple of the finest ICP voxel (1.5): the
+#: distance of the fitness, the RMSE, the information matrix and the pose graph
+FINE_DISTANCE = LEVELS[-1][1] / LEVELS[-1][0]
+#: fewest points per level for a pair's refinement to mean anything (normals, point-to-plane)
+MIN_PAIR_POINTS = 10
+
+
+class PairFit:
+    """:func:`refine_pair`'s result.
+
+    Attributes:
+        T_tgt_src: ``(4, 4)`` float64 array.
+        fitness: share of the source's points with a target point within the finest
+            distance (``FINE_DISTANCE`` ICP voxels).
+        rmse: root mean square distance of those points to their nearest target point
+            (metres; nan when no level ran).
+        information: ``(6, 6)`` information matrix of the finest correspondences (rotation
+            first, then translation: Open3D's order, that of its pose graph); given, or
+            measured on first read by a callable (only the pairs that become edges of a
+            pose graph need it).
+    """
+
+    __slots__ = ("T_tgt_src", "_information", "fitness", "rmse")
+
+    def __init__(
+        self,
+        T_tgt_src: np.ndarray,
+        fitness: float,
+        rmse: float,
+        information: np.ndarray | Callable[[], np.ndarray],
+    ) -> None:
+        self.T_tgt_src, self.fitness, self.rmse = T_tgt_src, fitness, rmse
+        self._information = information
+
+    @property
+    def information(self) -> np.ndarray:
+        if callable(self._information):
+            self._information = self._information()
+        return self._information
+
+    def __repr__(self) -> str:
+        return f"PairFit(fitness={self.fitness:.4f}, rmse={self.rmse:.5f})"
+
+
+def pair_cloud(points: torch.Tensor | np.ndarray, icp_voxel: float) -> RefineCloud:
+    """``points (N, 3)`` prepared for :func:`refine_pair` with the finest ICP voxel
+    ``icp_voxel`` (levels built on use)."""
+    return RefineCloud(points, icp_voxel / FINE_VOXEL, pyramid=True)
+
+
+def icp_voxel(cloud: RefineCloud) -> float:
+    """The finest ICP voxel of a :func:`pair_cloud`."""
+    return cloud.voxel_size * FINE_VOXEL
+
+
+def enough_points(cloud: RefineCloud, min_points: int = MIN_PAIR_POINTS) -> bool:
+    """True when every level of ``cloud`` keeps at least ``min_points`` points."""
+    return all(len(cloud.source(level)) >= min_points for level in range(len(cloud.levels)))
+
+
+def refine_pair(src: RefineCloud, tgt: RefineCloud, T_init: np.ndarray, parallel=None) -> PairFit:
+    """:func:`refine_multiscale` of ``src`` onto ``tgt`` (two :func:`pair_cloud` of one ICP
+    voxel) from ``T_init (4, 4)``, with the fit's fitness, RMSE and information matrix
+    (measured when first read)."""
+    voxel = src.voxel_size
+    start = torch.from_numpy(np.asarray(T_init, dtype=np.float64))
+    out = refine_multiscale(src, tgt, start, voxel, parallel=parallel)
+    T = out.T_tgt_src
+
+    def information() -> np.ndarray:
+        return information_matrix(src, tgt, T, LEVELS[-1][1] * voxel)
+
+    return PairFit(T.numpy().copy(), out.fitness, out.rmse * voxel, information)
+
+
+def information_matrix(
+    src: RefineCloud, tgt: RefineCloud, T_tgt_src: torch.Tensor, distance: float
+) -> np.ndarray:
+    """The ``(6, 6)`` information matrix of ``T_tgt_src`` at the finest level: over the
+    source points with a target point within ``distance`` (metres), the sum of
+    ``J^T J``, ``J = [-[t]x | I]`` at that target point ``t`` (the matrix Open3D's pose graph
+    takes, in its order: rotation, then translation)."""
+    level = len(src.levels) - 1
+    q, _, index = tgt.target(level)
+    p = src.source(level)
+    T = T_tgt_src.to(torch.float64)
+    moved = p @ T[:3, :3].T + T[:3, 3]
+    if len(moved) == 0 or len(q) == 0:
+        return np.zeros((6, 6))
+    reach = math.ceil(distance / index.size)  # every target point within the distance
+    near = nearest_of(index, moved, nearest_candidates(index, moved, 1, reach))
+    ok = (near.index >= 0) & (near.distance2 <= distance**2)
+    t = q[near.index[ok]].to(torch.float64)  # (K, 3)
+    x, y, z = t.unbind(1)
+    zero, one = torch.zeros_like(x), torch.ones_like(x)
+    J = torch.stack(
+        [
+            torch.stack([zero, z, -y, one, zero, zero], 1),
+            torch.stack([-z, zero, x, zero, one, zero], 1),
+            torch.stack([y, -x, zero, zero, zero, one], 1),
+        ],
+        1,
+    )  # (K, 3, 6)
+    return torch.einsum("kai,kaj->ij", J, J).numpy()
 
 
 #: restarts of the refinement, the check of the basin a result sits in: the result turned by

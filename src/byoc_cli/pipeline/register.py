@@ -31,7 +31,7 @@ from byoc_cli.pipeline.refine import (
 from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
-REFINERS = (None, "icp", "multiscale")
+REFINERS = (None, "multiscale")
 
 
 @dataclass(frozen=True)
@@ -50,10 +50,9 @@ class RegisterConfig:
         inlier_factor: inlier threshold as a multiple of the voxel size (RANSAC's threshold,
             and the threshold of the reported inliers and overlap).
         ransac_iterations, ransac_confidence: RANSAC's limits.
-        refine: ``None``, ``"icp"`` (Open3D's point-to-plane ICP on the kept points) or
-            ``"multiscale"`` (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to
-            fine on the full-resolution clouds, degenerate directions held).
-        icp_factor: ``"icp"``'s correspondence distance as a multiple of the voxel size.
+        refine: ``None`` or ``"multiscale"``
+            (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to fine on the
+            full-resolution clouds, degenerate directions held).
         restarts: after ``"multiscale"`` refinement, refine again from starts turned around the
             result (:func:`byoc_cli.pipeline.refine.restart_refinement`), keep the end of best
             fitness when it is elsewhere and better by ``SWITCH_GAIN``, and report how the
@@ -74,7 +73,6 @@ class RegisterConfig:
     ransac_iterations: int = PAPER.fitting.ransac_iterations
     ransac_confidence: float = PAPER.fitting.ransac_confidence
     refine: str | None = None
-    icp_factor: float = 2.0
     mutual: bool = PAPER.matching.mutual
     restarts: bool = PAPER.refinement.restarts
     seed: int = PAPER.seed
@@ -231,10 +229,7 @@ def estimate_transform(
     refinement = None
     restart_cues = {"restart_return": 1.0, "restart_gain": -1.0}  # no restarts: no doubt
     full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
-    if config.refine == "icp":
-        T = refine_icp(src.points, tgt.points, T, config.icp_factor * voxel_size)
-        start = timer("refine", start)
-    elif config.refine == "multiscale":
+    if config.refine == "multiscale":
         refinement = refine_multiscale(
             full_src, full_tgt, T, refine_voxel or voxel_size, parallel=parallel
         )
@@ -348,49 +343,6 @@ def _fit(
         confidence=config.ransac_confidence,
         generator=generator,
     )
-
-
-def refine_icp(
-    points_src: torch.Tensor,
-    points_tgt: torch.Tensor,
-    T_init: torch.Tensor,
-    max_distance: float,
-    *,
-    point_to_plane: bool = True,
-    max_iteration: int = 50,
-) -> torch.Tensor:
-    """ICP (open3d) from ``T_init``; returns the refined ``T_tgt_src``.
-
-    Args:
-        points_src, points_tgt: ``(N, 3)`` and ``(M, 3)`` points.
-        T_init: ``(4, 4)`` initial ``T_tgt_src``.
-        max_distance: largest correspondence distance, in the units of the points.
-        point_to_plane: point-to-plane (target normals from 30 neighbours within
-            ``2 * max_distance``); False: point-to-point.
-        max_iteration: ICP iterations at most.
-    """
-    from byoc_cli.errors import require_open3d
-
-    o3d = require_open3d()
-    reg = o3d.pipelines.registration
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_src.double().numpy()))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_tgt.double().numpy()))
-    if point_to_plane:
-        tgt.estimate_normals(
-            o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30)
-        )
-        estimation = reg.TransformationEstimationPointToPlane()
-    else:
-        estimation = reg.TransformationEstimationPointToPoint()
-    out = reg.registration_icp(
-        src,
-        tgt,
-        max_distance,
-        T_init.double().numpy(),
-        estimation,
-        reg.ICPConvergenceCriteria(max_iteration=max_iteration),
-    )
-    return torch.from_numpy(out.transformation.copy()).to(torch.float64)
 
 
 def register_clouds(

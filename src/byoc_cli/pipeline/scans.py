@@ -1,14 +1,15 @@
 """A whole scan: many overlapping clouds registered into one frame (``byoc register-scans``).
 
 1. Every cloud's features are computed once (the extractor of ``byoc register``) and each cloud
-   is prepared for ICP (:func:`byoc_cli.pipeline.posegraph.prepare_cloud`).
+   is prepared for ICP (:func:`byoc_cli.pipeline.refine.pair_cloud`).
 2. Pairs: every pair ``i < j`` for small sets (``<= all_pairs_max`` clouds); for larger sets,
    the neighbours in the given order (``j - i <= neighbours``), then the CANDIDATE pairs: the
    other pairs whose coarse clouds overlap by at least ``candidate_overlap`` under the poses
    of a first pose graph of the neighbour edges.
 3. Each pair is registered with the tool's pairwise registration
    (:func:`byoc_cli.pipeline.register.estimate_transform`, source ``j`` onto target ``i``),
-   refined by multi-scale point-to-plane ICP (candidate pairs also from the first graph's
+   refined by the multiscale point-to-plane ICP of ``byoc register``
+   (:func:`byoc_cli.pipeline.refine.refine_pair`; candidate pairs also from the first graph's
    relative pose, the better fit wins), and kept when the ICP fitness is at least
    ``min_fitness``.
 4. A pose graph (node ``k`` = cloud ``k``, ``T_world_k``; edge ``(j, i)`` = ``T_i_j`` with
@@ -30,8 +31,9 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import RegistrationError, ShapeError, require_open3d
-from byoc_cli.pipeline import posegraph
+from byoc_cli.pipeline import posegraph, refine
 from byoc_cli.pipeline.features import FeatureExtractor
+from byoc_cli.pipeline.refine import RefineCloud
 from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
 from byoc_cli.threads import worker_pool
 
@@ -45,7 +47,8 @@ class ScansConfig:
         neighbours: larger sets: pairs ``(i, j)`` with ``0 < j - i <= neighbours``.
         candidate_overlap: larger sets: another pair is tried when at least this share of
             one coarse cloud lies near the other under the first graph's poses.
-        icp_voxel: the finest ICP voxel (metres; ICP at 4, 2 and 1 times it).
+        icp_voxel: the finest ICP voxel (metres; the refinement's levels at 2.5, 1.25 and 1
+            times it).
         min_fitness: a pair is kept when its ICP fitness (share of the source's points
             within 1.5 ICP voxels of the target) is at least this.
         edge_prune_threshold, preference_loop_closure: Open3D's global optimisation.
@@ -126,7 +129,7 @@ class _PairSettings(NamedTuple):
 
 def _register_pair(
     feats: list,
-    clouds: list[posegraph.PreparedCloud],
+    clouds: list[RefineCloud],
     job: tuple[int, int, str, np.ndarray | None],
     settings: _PairSettings,
 ) -> PairRecord:
@@ -144,15 +147,15 @@ def _register_pair(
         error = str(exc)
     if T_prior is not None:
         starts.append(T_prior)
-    if starts and not (posegraph.enough_points(clouds[i]) and posegraph.enough_points(clouds[j])):
-        starts, error = [], f"fewer than {posegraph.MIN_ICP_POINTS} points at an ICP scale"
+    if starts and not (refine.enough_points(clouds[i]) and refine.enough_points(clouds[j])):
+        starts, error = [], f"fewer than {refine.MIN_PAIR_POINTS} points at an ICP scale"
     if not starts:
         return PairRecord(
             i, j, kind, "failed", None, None, confidence, float("nan"), float("nan"), "",
             False, time.perf_counter() - start, error,
         )  # fmt: skip
     est = max(
-        (posegraph.multiscale_icp(clouds[j], clouds[i], T) for T in starts),
+        (refine.refine_pair(clouds[j], clouds[i], T) for T in starts),
         key=lambda e: (e.fitness, -e.rmse),
     )
     status = "kept" if est.fitness >= min_fitness else "rejected"
@@ -215,7 +218,7 @@ def _optimise(
     optimised, kept = posegraph.optimize_pose_graph(
         [initial[k] for k in placed],
         edges,
-        posegraph.ICP_SCALES[-1][1] * config.icp_voxel,
+        refine.FINE_DISTANCE * config.icp_voxel,
         edge_prune_threshold=config.edge_prune_threshold,
         preference_loop_closure=config.preference_loop_closure,
     )
@@ -229,19 +232,25 @@ def _optimise(
     return poses, pairs
 
 
+#: candidate pairs: a coarse point overlaps when another cloud's coarse points lie within
+#: this many finest ICP voxels
+CANDIDATE_RADIUS = 6.0
+
+
 def _candidates(
-    clouds: list[posegraph.PreparedCloud],
+    clouds: list[RefineCloud],
     poses: list[np.ndarray | None],
     tried: set[tuple[int, int]],
     min_overlap: float,
 ) -> list[tuple[int, int]]:
     """Untried pairs whose coarse clouds overlap by at least ``min_overlap`` under ``poses``."""
     o3d = require_open3d()
-    radius = posegraph.ICP_SCALES[0][1] * clouds[0].voxel_size
+    radius = CANDIDATE_RADIUS * refine.icp_voxel(clouds[0])
     world = {}
     for k, pose in enumerate(poses):
         if pose is not None:
-            cloud = o3d.geometry.PointCloud(clouds[k].levels[0])
+            coarse = clouds[k].average(0).numpy()
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(coarse))
             world[k] = cloud.transform(pose)
     out = []
     for i in sorted(world):
@@ -311,7 +320,7 @@ def _register_all(arrays, extractor, register_config, config, labels, report, ti
         start = time.perf_counter()
         feats = extractor(torch.from_numpy(arrays[k]), label=labels[k])
         mid = time.perf_counter()
-        cloud = posegraph.prepare_cloud(arrays[k], config.icp_voxel)
+        cloud = refine.pair_cloud(arrays[k], config.icp_voxel).prepare()
         return feats, cloud, mid - start, time.perf_counter() - mid
 
     feats, clouds = [], []
