@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from byoc_cli.pipeline.posegraph import Edge, fpfh_ransac, optimize_pose_graph
+from byoc_cli.pipeline.posegraph import (
+    Edge,
+    fpfh_ransac,
+    multiscale_icp,
+    optimize_pose_graph,
+    prepare_cloud,
+    prepared_fpfh_ransac,
+)
 from byoc_cli.pipeline.refine import pair_cloud, refine_pair
 from byoc_cli.training.pseudo_poses import transform_difference
 
@@ -66,6 +73,25 @@ def test_fpfh_ransac_finds_a_large_motion():
     src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
     a, b = pair_cloud(src, 0.025), pair_cloud(tgt, 0.025)
     est = refine_pair(a, b, fpfh_ransac(src, tgt, 0.025, seed=0))
+    rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
+    assert rot < 1.0 and trans < 0.02
+
+
+def test_the_self_posed_pairs_icp_recovers_a_known_transform_and_a_large_motion():
+    # Open3D's multi-scale ICP, kept for the self-posed training pairs
+    pytest.importorskip("open3d")
+    tgt = _scene()
+    T_tgt_src = _rigid(6.0, [0.3, 1, 0.2], [0.05, -0.04, 0.03])
+    src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
+    est = multiscale_icp(prepare_cloud(src, 0.025), prepare_cloud(tgt, 0.025), np.eye(4))
+    rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
+    assert rot < 0.5 and trans < 0.01
+    assert est.fitness > 0.9 and est.rmse < 0.02
+    assert est.information.shape == (6, 6)
+    T_tgt_src = _rigid(60.0, [0, 0, 1], [0.3, 0.2, 0.0])
+    src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
+    a, b = prepare_cloud(src, 0.025), prepare_cloud(tgt, 0.025)
+    est = multiscale_icp(a, b, prepared_fpfh_ransac(a, b, seed=0))
     rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
     assert rot < 1.0 and trans < 0.02
 

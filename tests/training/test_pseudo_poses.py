@@ -59,13 +59,13 @@ def test_real_sequence_pairs_agree_with_ground_truth(shared_data):
         assert table[gap]["median_rotation_deg"] < 5.0
         assert table[gap]["median_translation_cm"] < 5.0
     # every kept pair sits in the basin of ICP started from the ground truth
-    from byoc_cli.pipeline.refine import pair_cloud, refine_pair
+    from byoc_cli.pipeline.posegraph import multiscale_icp, prepare_cloud
     from byoc_cli.training.pseudo_poses import frame_points
 
     for pair in result.pairs[:4]:
         T_gt = np.linalg.inv(seq.pose(pair.i)) @ seq.pose(pair.j)
-        clouds = [pair_cloud(frame_points(seq, f), config.voxel_size) for f in (pair.j, pair.i)]
-        from_gt = refine_pair(clouds[0], clouds[1], T_gt)
+        clouds = [prepare_cloud(frame_points(seq, f), config.voxel_size) for f in (pair.j, pair.i)]
+        from_gt = multiscale_icp(clouds[0], clouds[1], T_gt)
         rot, trans = transform_difference(from_gt.T_tgt_src, pair.T_i_j)
         assert rot < 0.5 and trans < 0.01
     # the cache record round-trips
@@ -78,13 +78,8 @@ class _Cloud:
     """Stands in for a prepared cloud: the finest level's points are all that is read."""
 
     def __init__(self, k: int) -> None:
-        self.k = k
-        self.levels = [None]
-
-    def average(self, level: int):
-        import torch
-
-        return torch.full((4, 3), float(self.k), dtype=torch.float64)
+        level = type("Level", (), {"points": np.full((4, 3), float(k))})()
+        self.levels = [level]
 
 
 def _motion(deg: float, metres: float) -> np.ndarray:
@@ -103,12 +98,12 @@ class _Icp:
         self.truth = truth
 
     def __call__(self, src, tgt, T_init):
-        from byoc_cli.pipeline.refine import PairFit
+        from byoc_cli.pipeline.posegraph import PairEstimate
 
         rot, trans = transform_difference(self.truth, T_init)
         good = rot < 1.0 and trans < 0.01
         T = self.truth if good else np.asarray(T_init)
-        return PairFit(T.copy(), 0.8 if good else 0.1, 0.01, np.eye(6))
+        return PairEstimate(T.copy(), 0.8 if good else 0.1, 0.01, np.eye(6))
 
 
 def test_wide_pair_falls_back_to_the_global_start_under_the_same_checks(monkeypatch):
@@ -144,11 +139,10 @@ def test_wide_pair_falls_back_to_the_global_start_under_the_same_checks(monkeypa
 
 def test_odometry_asks_the_global_start_instead_of_fpfh(monkeypatch):
     import byoc_cli.pipeline.posegraph as posegraph
-    import byoc_cli.pipeline.refine as refine
     import byoc_cli.training.pseudo_poses as pp
 
     truth = _motion(12.0, 0.2)  # too far for ICP from the identity (in this stand-in)
-    monkeypatch.setattr(refine, "refine_pair", _Icp(truth))
+    monkeypatch.setattr(posegraph, "multiscale_icp", _Icp(truth))
 
     def no_fpfh(*_a, **_k):
         raise AssertionError("FPFH was used although a global start was given")

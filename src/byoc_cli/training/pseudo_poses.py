@@ -3,8 +3,7 @@
 For one depth sequence (poses never read):
 
 1. odometry: every consecutive pair of (sub-sampled) frames is registered with coarse-to-fine
-   point-to-plane ICP (:func:`byoc_cli.pipeline.refine.refine_pair`, the refinement of ``byoc
-   register``) from the identity and from the previous motion (constant velocity); when
+   point-to-plane ICP from the identity and from the previous motion (constant velocity); when
    neither fits, a global registration gives the start (FPFH + RANSAC, or in later training
    rounds the learned encoder: ``global_start``). A frame that still does not fit starts a
    new segment (the chain is never bridged by a guess);
@@ -31,7 +30,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from byoc_cli.pipeline import odometry, posegraph, refine
+from byoc_cli.pipeline import odometry, posegraph
 
 #: frame points farther than this from the camera are dropped (Kinect noise grows with z^2)
 DEFAULT_MAX_DEPTH = odometry.DEFAULT_MAX_DEPTH
@@ -129,13 +128,18 @@ def _fits(est: Any, min_fitness: float, max_rmse: float) -> bool:
     return est.fitness >= min_fitness and est.rmse <= max_rmse
 
 
+def _fine_points(cloud: Any) -> np.ndarray:
+    """``(N, 3)`` float64 points of a prepared cloud's finest level."""
+    return np.asarray(cloud.levels[-1].points)
+
+
 def _global(clouds, src: int, tgt: int, config: PseudoPoseConfig, global_start):
     """A global start for used frame ``src`` onto ``tgt``: ``(origin, T | None)``."""
+    from byoc_cli.pipeline.posegraph import prepared_fpfh_ransac
+
     if global_start is None:
-        points = (clouds[src].points.numpy(), clouds[tgt].points.numpy())
-        return "fpfh", posegraph.fpfh_ransac(*points, config.voxel_size, seed=config.seed + src)
-    fine = odometry.fine_points
-    T = global_start(src, fine(clouds[src]), tgt, fine(clouds[tgt]))
+        return "fpfh", prepared_fpfh_ransac(clouds[src], clouds[tgt], seed=config.seed + src)
+    T = global_start(src, _fine_points(clouds[src]), tgt, _fine_points(clouds[tgt]))
     return "learned", T
 
 
@@ -143,15 +147,17 @@ def _odometry_step(
     clouds, k: int, velocity: np.ndarray, config: PseudoPoseConfig, global_start=None
 ):
     """Register used frame ``k`` onto ``k - 1``; returns the best estimate and its origin."""
+    from byoc_cli.pipeline.posegraph import multiscale_icp
+
     src, tgt = clouds[k], clouds[k - 1]
-    tries = [("identity", refine.refine_pair(src, tgt, np.eye(4)))]
+    tries = [("identity", multiscale_icp(src, tgt, np.eye(4)))]
     if not np.allclose(velocity, np.eye(4)):
-        tries.append(("velocity", refine.refine_pair(src, tgt, velocity)))
+        tries.append(("velocity", multiscale_icp(src, tgt, velocity)))
     best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
     if not _fits(best[1], config.odometry_min_fitness, config.odometry_max_rmse):
         origin, start = _global(clouds, k, k - 1, config, global_start)
         if start is not None:
-            tries.append((origin, refine.refine_pair(src, tgt, start)))
+            tries.append((origin, multiscale_icp(src, tgt, start)))
             best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
     return best
 
@@ -204,16 +210,14 @@ def estimate_pairs(
     Returns:
         :class:`SequencePairs`.
     """
-    from byoc_cli.pipeline.posegraph import Edge, optimize_pose_graph
+    from byoc_cli.pipeline.posegraph import Edge, optimize_pose_graph, prepare_cloud
 
     config = config or PseudoPoseConfig()
     report = progress or (lambda *_: None)
     frames = list(range(0, len(sequence.frames), config.frame_stride))
     clouds = []
     for n, f in enumerate(frames):
-        points = frame_points(sequence, f, config.max_depth)
-        # every frame is kept for the wide pairs: its levels, not its full-resolution points
-        clouds.append(refine.pair_cloud(points, config.voxel_size).drop_points())
+        clouds.append(prepare_cloud(frame_points(sequence, f, config.max_depth), config.voxel_size))
         report("frames", n + 1, len(frames))
 
     stats = dict.fromkeys(
@@ -269,7 +273,7 @@ def estimate_pairs(
         edges = [_local_edge(e, local) for e in odo_edges if e.src in local]
         edges += [_local_edge(e, local) for e, _, _ in seg_loops]
         optimised, edge_kept = optimize_pose_graph(
-            [chain[k] for k in nodes], edges, refine.FINE_DISTANCE * config.voxel_size
+            [chain[k] for k in nodes], edges, ICP_FINE_DISTANCE_FACTOR * config.voxel_size
         )
         for k, pose in zip(nodes, optimised, strict=True):
             poses[k] = pose
@@ -292,8 +296,14 @@ def estimate_pairs(
     return SequencePairs(frames, poses, segments, kept_pairs, candidates, kept, stats)
 
 
+#: the finest ICP correspondence distance as a multiple of the voxel (posegraph.ICP_SCALES)
+ICP_FINE_DISTANCE_FACTOR = 1.5
+
+
 def _direct(clouds, a: int, b: int, T_init: np.ndarray):
-    return refine.refine_pair(clouds[b], clouds[a], T_init)
+    from byoc_cli.pipeline.posegraph import multiscale_icp
+
+    return multiscale_icp(clouds[b], clouds[a], T_init)
 
 
 def _local_edge(edge: Any, local: dict[int, int]) -> Any:
