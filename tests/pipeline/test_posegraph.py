@@ -55,43 +55,46 @@ def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def test_refine_pair_recovers_a_known_transform():
+#: the two pair ICPs: ``register-scans`` and ``odometry`` refine with ours, the self-posed
+#: training pairs with Open3D's; (prepare, refine, global start of (prepared, points))
+PAIR_ICPS = {
+    "refine_pair": (
+        pair_cloud,
+        refine_pair,
+        lambda prepared, points: fpfh_ransac(*points, 0.025, seed=0),
+    ),
+    "open3d": (
+        prepare_cloud,
+        multiscale_icp,
+        lambda prepared, points: prepared_fpfh_ransac(*prepared, seed=0),
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(PAIR_ICPS))
+def test_a_pair_icp_recovers_a_known_transform(kind):
+    if kind == "open3d":
+        pytest.importorskip("open3d")
+    prepare, refine, _ = PAIR_ICPS[kind]
     tgt = _scene()
     T_tgt_src = _rigid(6.0, [0.3, 1, 0.2], [0.05, -0.04, 0.03])
     src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
-    est = refine_pair(pair_cloud(src, 0.025), pair_cloud(tgt, 0.025), np.eye(4))
+    est = refine(prepare(src, 0.025), prepare(tgt, 0.025), np.eye(4))
     rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
     assert rot < 0.5 and trans < 0.01
     assert est.fitness > 0.9 and est.rmse < 0.02
     assert est.information.shape == (6, 6)
 
 
-def test_fpfh_ransac_finds_a_large_motion():
+@pytest.mark.parametrize("kind", sorted(PAIR_ICPS))
+def test_fpfh_ransac_finds_a_large_motion(kind):
     pytest.importorskip("open3d")
+    prepare, refine, start = PAIR_ICPS[kind]
     tgt = _scene()
     T_tgt_src = _rigid(60.0, [0, 0, 1], [0.3, 0.2, 0.0])
     src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
-    a, b = pair_cloud(src, 0.025), pair_cloud(tgt, 0.025)
-    est = refine_pair(a, b, fpfh_ransac(src, tgt, 0.025, seed=0))
-    rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
-    assert rot < 1.0 and trans < 0.02
-
-
-def test_the_self_posed_pairs_icp_recovers_a_known_transform_and_a_large_motion():
-    # Open3D's multi-scale ICP, kept for the self-posed training pairs
-    pytest.importorskip("open3d")
-    tgt = _scene()
-    T_tgt_src = _rigid(6.0, [0.3, 1, 0.2], [0.05, -0.04, 0.03])
-    src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
-    est = multiscale_icp(prepare_cloud(src, 0.025), prepare_cloud(tgt, 0.025), np.eye(4))
-    rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
-    assert rot < 0.5 and trans < 0.01
-    assert est.fitness > 0.9 and est.rmse < 0.02
-    assert est.information.shape == (6, 6)
-    T_tgt_src = _rigid(60.0, [0, 0, 1], [0.3, 0.2, 0.0])
-    src = _apply(np.linalg.inv(T_tgt_src), _scene(1))
-    a, b = prepare_cloud(src, 0.025), prepare_cloud(tgt, 0.025)
-    est = multiscale_icp(a, b, prepared_fpfh_ransac(a, b, seed=0))
+    a, b = prepare(src, 0.025), prepare(tgt, 0.025)
+    est = refine(a, b, start((a, b), (src, tgt)))
     rot, trans = transform_difference(T_tgt_src, est.T_tgt_src)
     assert rot < 1.0 and trans < 0.02
 
