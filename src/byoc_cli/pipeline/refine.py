@@ -114,8 +114,8 @@ class RefineCloud:
             the finer level's averages, weighted by their point counts (one pass over the
             points instead of one per level; a point near a coarse cell's border may go
             with its fine cell's average to the cell next door): for the many
-            full-resolution frames of ``odometry``, ``register-scans`` and the self-posed
-            pairs.
+            full-resolution clouds of ``odometry`` and ``register-scans``
+            (:func:`pair_cloud`).
     """
 
     def __init__(
@@ -177,13 +177,6 @@ class RefineCloud:
                 self.source(level)
             if target:
                 self.target(level)
-        return self
-
-    def drop_points(self) -> RefineCloud:
-        """Build every level, then keep the finest level's voxel averages in place of the
-        full-resolution points (a cloud kept for a long time: a sequence's frames); ``self``."""
-        self.prepare()
-        self.points = self.average(len(self.levels) - 1)
         return self
 
 
