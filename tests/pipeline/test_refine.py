@@ -192,6 +192,22 @@ def test_a_pyramid_cloud_averages_its_coarse_levels_from_the_finest(generator):
     assert refine_module.pair_cloud(src, 0.02).pyramid
 
 
+def test_a_pair_cloud_that_drops_its_points_refines_the_same(generator):
+    import numpy as np
+
+    T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
+    src, tgt = _room_pair(20000, T_true, generator)
+    kept = refine_module.refine_pair(
+        refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02), np.eye(4)
+    )
+    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    a.drop_points(), b.drop_points()
+    assert len(a.points) < len(src)  # the finest averages in place of the points
+    dropped = refine_module.refine_pair(a, b, np.eye(4))
+    assert np.array_equal(dropped.T_tgt_src, kept.T_tgt_src)
+    assert np.array_equal(dropped.information, kept.information)
+
+
 def test_a_pair_refinement_measures_its_information_only_when_read(generator, monkeypatch):
     import numpy as np
 

@@ -254,9 +254,10 @@ def _tracking_pass(
             tr.keyframes.append(k)
             tr.segments.append(segment)
             tr.reference[k], tr.T_ref_frame[k] = k, np.eye(4)
-            key_cloud = cloud
-            if config.pose_graph:
+            if config.pose_graph:  # the past keyframe is kept for loop edges: its levels only
+                key_cloud.drop_points()
                 key_clouds[k] = cloud
+            key_cloud = cloud
         progress(k + 1, num)
     return tr
 

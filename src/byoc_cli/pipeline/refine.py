@@ -179,6 +179,15 @@ class RefineCloud:
                 self.target(level)
         return self
 
+    def drop_points(self) -> RefineCloud:
+        """Build every level, then keep the finest level's voxel averages in place of the
+        full-resolution points (a cloud kept for later pairs only: the past keyframes of
+        ``odometry --pose-graph``); the levels, and so every refinement, stay the same;
+        ``self``."""
+        self.prepare()
+        self.points = self.average(len(self.levels) - 1)
+        return self
+
 
 def refine_multiscale(
     points_src: torch.Tensor | RefineCloud,
