@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.fitting.point_to_plane import point_to_plane_step
+from byoc_cli.fitting.point_to_plane import point_to_plane_step, point_to_plane_steps
 from byoc_cli.geometry.transforms import apply_transform, axis_angle_to_matrix, make_transform
 
 
@@ -126,3 +126,34 @@ def test_sliding_holds_a_translation_that_few_surfaces_face(generator):
     moved = apply_transform(held.T, centre) - centre
     assert float(moved[0, 0]) == pytest.approx(0.0, abs=1e-12)
     assert float(moved[0, 2]) == pytest.approx(-0.01, abs=1e-6)  # the floor still lifts it back
+
+
+@pytest.mark.parametrize("degeneracy", [0.0, 0.05])
+def test_batched_steps_agree_with_one_step_each(generator, degeneracy):
+    # a box, a plane (sliding held), a box seen in part (weights 0), and nothing at all
+    p, n = _box_surface(400, generator)
+    plane_p = p.clone()
+    plane_p[:, 2] = 0.0
+    plane_n = torch.zeros_like(n)
+    plane_n[:, 2] = 1.0
+    P = torch.stack([p, plane_p, p, p])
+    N = torch.stack([n, plane_n, n, n])
+    Q = apply_transform(_motion(3.0, [0.02, -0.01, 0.03]), P)
+    W = torch.ones(4, 400, dtype=torch.float64)
+    W[2, ::3] = 0.0
+    W[3] = 0.0
+    steps = point_to_plane_steps(P, Q, N, W, degeneracy=degeneracy)
+    assert steps.shape == (4, 4, 4)
+    for s in range(3):
+        keep = W[s] > 0
+        one = point_to_plane_step(P[s][keep], Q[s][keep], N[s][keep], degeneracy=degeneracy)
+        assert torch.allclose(steps[s], one.T, atol=1e-12)
+    assert torch.equal(steps[3], torch.eye(4, dtype=torch.float64))
+
+
+def test_batched_steps_check_their_shapes():
+    p = torch.zeros(2, 5, 3, dtype=torch.float64)
+    with pytest.raises(ShapeError):
+        point_to_plane_steps(p, p, p, torch.ones(2, 4))
+    with pytest.raises(ShapeError):
+        point_to_plane_steps(p[0], p[0], p[0], torch.ones(5))

@@ -19,6 +19,7 @@ from byoc_cli.pipeline.refine import (
     Restarts,
     measure_fit,
     refine_multiscale,
+    refine_starts,
     restart_refinement,
     restart_starts,
 )
@@ -234,6 +235,21 @@ def test_restarts_come_back_to_a_right_result_of_distinct_geometry(generator):
     assert restarts.returned(0) == 1.0
     assert restarts.gain(0) == -1.0  # no end elsewhere
     assert _pose_error(restarts.ends[restarts.best()], T_true)[0] < 0.5
+
+
+def test_starts_refined_together_end_where_each_ends_alone(generator):
+    T_true = _motion([0.1, -0.2, 0.15], [0.1, 0.2, -0.05])
+    src, tgt = _room_pair(40_000, T_true, generator)
+    src, tgt = RefineCloud(src, 0.025), RefineCloud(tgt, 0.025)
+    centroid = src.source(0, refine_module.RESTART_POINTS).mean(0)
+    starts = restart_starts(_motion([0.05, 0.0, -0.1], [0.03, -0.02, 0.0]) @ T_true, centroid)
+    starts = torch.cat([starts, _motion([0.0, 0.0, 3.0], [0.0, 0.0, 0.0])[None]])  # far off
+    ends, fitness = refine_starts(src, tgt, starts, 0.025, max_source_points=2000)
+    for k in range(len(starts)):
+        alone = refine_multiscale(src, tgt, starts[k], 0.025, max_source_points=2000)
+        assert torch.allclose(ends[k], alone.T_tgt_src, atol=1e-9)
+        assert float(fitness[k]) == pytest.approx(alone.fitness, abs=1e-3)
+    assert _pose_error(ends[0], T_true)[0] < 0.5
 
 
 def test_restarts_on_a_sphere_find_no_basin(generator):

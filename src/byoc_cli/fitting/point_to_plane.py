@@ -109,3 +109,64 @@ def _free_basis(n: torch.Tensor, w: torch.Tensor, sliding: float) -> torch.Tenso
     C[3:] = held
     U, _, _ = torch.linalg.svd(basis - C @ C.T)
     return U[:, : 6 - held.shape[1]]
+
+
+def point_to_plane_steps(
+    p: torch.Tensor,
+    q: torch.Tensor,
+    n: torch.Tensor,
+    weights: torch.Tensor,
+    degeneracy: float = DEGENERACY,
+    sliding: float = SLIDING,
+) -> torch.Tensor:
+    """:func:`point_to_plane_step` of ``S`` problems at once (the restarts of a refinement:
+    one call instead of ``S``, each a few dozen operations on small tensors).
+
+    The held translations are projected out instead of cut from the basis (``P H P`` has
+    eigenvalue 0 along them, which the ``degeneracy`` floor drops), so a step agrees with
+    :func:`point_to_plane_step` up to rounding, not to the last bit.
+
+    Args:
+        p, q, n: ``(S, K, 3)`` source points, their target points and unit normals.
+        weights: ``(S, K)`` non-negative weights (0: a point that does not take part).
+        degeneracy, sliding: as :func:`point_to_plane_step`.
+
+    Returns:
+        ``(S, 4, 4)`` float64 increments (the identity where a problem's weights are all 0).
+
+    Raises:
+        ShapeError: shapes differ or are not ``(S, K, 3)`` and ``(S, K)``.
+    """
+    if p.ndim != 3 or p.shape[-1] != 3 or q.shape != p.shape or n.shape != p.shape:
+        raise ShapeError(f"p, q, n must all be (S, K, 3), got {p.shape}, {q.shape}, {n.shape}")
+    if weights.shape != p.shape[:2]:
+        raise ShapeError(f"weights must be (S, K) = {tuple(p.shape[:2])}, got {weights.shape}")
+    p, q, n, w = p.double(), q.double(), n.double(), weights.double()
+    total = w.sum(1)  # (S,)
+    safe = total.clamp_min(1e-300)
+    c = (w[..., None] * p).sum(1) / safe[:, None]  # (S, 3)
+    centred = p - c[:, None]
+    radius = torch.sqrt((w * (centred**2).sum(2)).sum(1) / safe).clamp_min(1e-9)  # (S,)
+    J = torch.cat([torch.linalg.cross(centred, n) / radius[:, None, None], n], dim=2)
+    r = ((p - q) * n).sum(2)  # (S, K)
+    H = J.transpose(1, 2) @ (w[..., None] * J)  # (S, 6, 6)
+    g = -(J.transpose(1, 2) @ (w * r)[..., None])[..., 0]  # (S, 6)
+    P = _free_projector(n, w, sliding)
+    lam, U = torch.linalg.eigh(P @ H @ P)
+    top = lam[:, -1:].clamp_min(1e-300)
+    keep = (lam > max(degeneracy, 1e-12) * top) & (total > 0)[:, None]
+    inverse = torch.where(keep, 1.0 / torch.where(keep, lam, 1.0), 0.0)
+    xi = (U @ (inverse * (U.transpose(1, 2) @ (P @ g[..., None]))[..., 0])[..., None])[..., 0]
+    R = axis_angle_to_matrix(xi[:, :3] / radius[:, None])
+    t = c - (R @ c[..., None])[..., 0] + xi[:, 3:]
+    return make_transform(R, t)
+
+
+def _free_projector(n: torch.Tensor, w: torch.Tensor, sliding: float) -> torch.Tensor:
+    """``(S, 6, 6)`` projector onto the motions of :func:`_free_basis`, for normals
+    ``n (S, K, 3)`` and weights ``w (S, K)``."""
+    mu, E = torch.linalg.eigh((n.transpose(1, 2) * w[:, None]) @ n)  # (S, 3), (S, 3, 3)
+    held = (mu < sliding * mu[:, -1:].clamp_min(1e-300)).to(E.dtype)  # (S, 3)
+    C = torch.zeros(len(n), 6, 3, dtype=torch.float64)
+    C[:, 3:] = E * held[:, None, :]
+    return torch.eye(6, dtype=torch.float64) - C @ C.transpose(1, 2)

@@ -33,6 +33,7 @@ from byoc_cli.fitting.point_to_plane import (
     SLIDING,
     PlaneStep,
     point_to_plane_step,
+    point_to_plane_steps,
 )
 from byoc_cli.geometry.neighbors import (
     CellIndex,
@@ -544,27 +545,94 @@ def restart_refinement(
     on at most ``RESTART_POINTS`` source points per level: a right result sits in a basin
     the restarts come back to, and no restart ends elsewhere with a better fitness.
 
-    Args: as :func:`refine_multiscale`; ``parallel`` runs two halves of the starts side by side.
+    Args: as :func:`refine_multiscale`; ``parallel`` splits the searches in halves.
     """
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
     centroid = src.source(0, RESTART_POINTS).mean(0)
     starts = restart_starts(T.detach().to(torch.float64).cpu(), centroid)
-
-    def run(indices: Sequence[int]) -> list[Refinement]:
-        return [
-            refine_multiscale(src, tgt, starts[k], voxel_size, max_source_points=RESTART_POINTS)
-            for k in indices
-        ]
-
-    order = list(range(len(starts)))
-    if parallel is None:
-        ends = run(order)
-    else:
-        halves = parallel([lambda: run(order[0::2]), lambda: run(order[1::2])])
-        ends = [None] * len(order)
-        ends[0::2], ends[1::2] = halves[0], halves[1]
-    return Restarts(
-        torch.stack([e.T_tgt_src for e in ends]),
-        torch.tensor([e.fitness for e in ends], dtype=torch.float64),
-        float(voxel_size),
+    ends, fitness = refine_starts(
+        src, tgt, starts, voxel_size, max_source_points=RESTART_POINTS, parallel=parallel
     )
+    return Restarts(ends, fitness, float(voxel_size))
+
+
+def refine_starts(
+    points_src: torch.Tensor | RefineCloud,
+    points_tgt: torch.Tensor | RefineCloud,
+    starts: torch.Tensor,
+    voxel_size: float,
+    max_source_points: int = MAX_SOURCE_POINTS,
+    parallel: Callable[[Sequence[Callable[[], torch.Tensor]]], list] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`refine_multiscale` from each of ``starts (S, 4, 4)`` at once: every step moves
+    all the starts still moving with one nearest-point search and one
+    :func:`point_to_plane_steps` (a start stops at a level as it would alone: converged,
+    too few correspondences, or ``ITERATIONS`` steps). The ends agree with
+    :func:`refine_multiscale`'s up to rounding.
+
+    Args: as :func:`refine_multiscale` (default degeneracy and sliding); ``parallel``
+        splits the searches in halves.
+
+    Returns:
+        ``(S, 4, 4)`` float64 ends and ``(S,)`` float64 fitness of each (as
+        :attr:`Refinement.fitness`).
+    """
+    src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
+    T = starts.detach().to(device="cpu", dtype=torch.float64).clone()
+    fitness = torch.zeros(len(T), dtype=torch.float64)
+    for level, (size, dist, _) in enumerate(src.levels):
+        p = src.source(level, max_source_points)
+        q, n, index = tgt.target(level)
+        if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
+            break
+        search = _StartSearch(index, SEARCH_REACH[level], RESEARCH * size, parallel)
+        moving = torch.arange(len(T))
+        for _ in range(ITERATIONS):
+            if len(moving) == 0:
+                break
+            moved = p @ T[moving, :3, :3].transpose(1, 2) + T[moving, None, :3, 3]  # (A, K, 3)
+            near = search.nearest(moving, moved)
+            ok = near.distance2 <= dist**2  # (A, K)
+            fitness[moving] = ok.double().mean(1)
+            enough = ok.sum(1) >= MIN_CORRESPONDENCES  # fewer: the start stops at this level
+            moving, moved, ok, j = moving[enough], moved[enough], ok[enough], near.index[enough]
+            j = j.clamp_min(0)
+            steps = point_to_plane_steps(moved, q[j], n[j], ok.double())
+            T[moving] = steps @ T[moving]
+            cos = (steps[:, :3, :3].diagonal(dim1=1, dim2=2).sum(1) - 1) / 2
+            angle = torch.arccos(cos.clamp(-1.0, 1.0))
+            shift = torch.linalg.vector_norm(steps[:, :3, 3], dim=1)
+            moving = moving[~((angle < TOLERANCE) & (shift < TOLERANCE * voxel_size))]
+    return T, fitness
+
+
+class _StartSearch:
+    """The nearest-point searches of :func:`refine_starts` at one level: each start's
+    candidates, gathered again only once its points have moved ``research`` since."""
+
+    def __init__(self, index: CellIndex, reach: int, research: float, parallel) -> None:
+        self.index, self.reach, self.research, self.parallel = index, reach, research, parallel
+        self.anchor: dict[int, torch.Tensor] = {}
+        self.candidates: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def nearest(self, starts: torch.Tensor, moved: torch.Tensor) -> Nearest:
+        """:class:`Nearest` of ``moved (A, K, 3)``, the points of ``starts (A,)``, as
+        ``(A, K)`` tensors."""
+        ids = starts.tolist()
+        stale = [
+            a
+            for a, s in enumerate(ids)
+            if s not in self.anchor
+            or float((moved[a] - self.anchor[s]).abs().max()) > self.research
+        ]
+        if stale:
+            queries = moved[stale].reshape(-1, 3)
+            found = _search(self.index, queries, self.reach, self.parallel)
+            coordinates = candidate_coordinates(self.index, found)
+            for k, (a, part) in enumerate(zip(stale, found.chunk(len(stale)), strict=True)):
+                self.anchor[ids[a]] = moved[a]
+                self.candidates[ids[a]] = (part, coordinates.chunk(len(stale), dim=1)[k])
+        candidates = torch.cat([self.candidates[s][0] for s in ids])
+        coordinates = torch.cat([self.candidates[s][1] for s in ids], dim=1)
+        near = nearest_of(self.index, moved.reshape(-1, 3), candidates, coordinates)
+        return Nearest(near.index.view(len(ids), -1), near.distance2.view(len(ids), -1))
