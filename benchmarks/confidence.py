@@ -26,6 +26,15 @@ Usage:
     python benchmarks/confidence.py collect --out coarse.jsonl --refine none \
         --truth-from dev.jsonl
     python benchmarks/confidence.py fit dev.jsonl [more.jsonl ...]
+    python benchmarks/confidence.py floor --out floor.jsonl [--part I/N]
+    python benchmarks/confidence.py floor-table floor.jsonl [more.jsonl ...]
+
+`floor` registers every pair as `byoc register` does (the FPFH fallback included) and, for
+each refined registration, also without the refinement's restarts: the confidence before the
+restarts (with their most confident cues) against after, and the seconds the restarts took.
+`floor-table` prints, for each floor, how many registrations would skip the restarts and
+whether any of them would have reached the default gate after them (the choice of
+`register.RESTART_FLOOR`).
 """
 
 from __future__ import annotations
@@ -426,6 +435,84 @@ def fit(paths: list[Path], truth: str) -> None:
         )
 
 
+def floor_collect(out: Path, part: tuple[int, int]) -> None:
+    """Every pair's refined registrations with and without the restarts, one line per pair."""
+    import dataclasses
+
+    import byoc_cli.pipeline.register as register
+    from byoc_cli.api import Registrar
+
+    calls: list[dict] = []
+    estimate = register.estimate_transform
+
+    def both(src, tgt, config, voxel_size, clouds=None, refine_voxel=None, parallel=None):
+        every = dataclasses.replace(config, restart_floor=0.0)  # the restarts always run
+        after = estimate(src, tgt, every, voxel_size, clouds, refine_voxel, parallel)
+        if config.refine == "multiscale" and config.restarts:
+            none = dataclasses.replace(config, restarts=False)
+            before = estimate(src, tgt, none, voxel_size, clouds, refine_voxel, parallel)
+            calls.append(
+                {
+                    "model": config.confidence_model,
+                    "before": before.confidence,
+                    "after": after.confidence,
+                    "restart_seconds": after.timings.get("restarts", 0.0),
+                }
+            )
+        return after
+
+    register.estimate_transform = both  # the registrar calls it through the module
+    registrar = Registrar("byoc", device="cpu", fallback="fpfh")
+    sources = (rgbd_pairs(), fragment_pairs(), variant_pairs(), negative_pairs())
+    count = -1
+    with out.open("w") as file:
+        for source in sources:
+            for name, group, load_src, load_tgt, _, _ in source:
+                count += 1
+                if count % part[1] != part[0] - 1:
+                    continue
+                calls.clear()
+                record = {"name": name, "group": group}
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        record["confidence"] = registrar.register(load_src(), load_tgt()).confidence
+                except Exception as exc:  # a refusal: no registration to measure
+                    record["refused"] = str(exc)
+                record["calls"] = list(calls)
+                file.write(json.dumps(record) + "\n")
+                file.flush()
+                print(
+                    name, [(c["model"], round(c["before"], 3), round(c["after"], 3)) for c in calls]
+                )
+
+
+def floor_table(paths: list[Path]) -> None:
+    """For each floor: registrations below it before the restarts, the most confident of them
+    after, how many passed the default gate after, and the restarts' seconds they took."""
+    from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
+
+    calls = [
+        c for p in paths for line in p.read_text().splitlines() for c in json.loads(line)["calls"]
+    ]
+    raised = [c for c in calls if c["after"] > c["before"] + 1e-9]
+    print(
+        f"{len(calls)} refined registrations; the restarts raised the confidence of {len(raised)}"
+        + (f", by at most {max(c['after'] - c['before'] for c in raised):.3f}" if raised else "")
+    )
+    print("floor  below  of  passed-after  most-after  restart-s-below  restart-s-all")
+    total = sum(c["restart_seconds"] for c in calls)
+    for floor in (0.05, 0.1, 0.2, 0.3, 0.45):
+        below = [c for c in calls if c["before"] < floor]
+        passed = sum(c["after"] >= DEFAULT_MIN_CONFIDENCE for c in below)
+        most = max((c["after"] for c in below), default=0.0)
+        seconds = sum(c["restart_seconds"] for c in below)
+        print(
+            f"{floor:5.2f} {len(below):6d} {len(calls):4d} {passed:13d} {most:11.3f}"
+            f" {seconds:16.1f} {total:14.1f}"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -442,10 +529,19 @@ def main(argv: list[str] | None = None) -> int:
     f = sub.add_parser("fit")
     f.add_argument("paths", type=Path, nargs="+")
     f.add_argument("--truth", choices=("gt", "refined"), default="refined")
+    g = sub.add_parser("floor")
+    g.add_argument("--out", type=Path, required=True)
+    g.add_argument("--part", default="1/1", help="I/N: every N-th pair from the I-th")
+    t = sub.add_parser("floor-table")
+    t.add_argument("paths", type=Path, nargs="+")
     args = parser.parse_args(argv)
     if args.command == "collect":
         part = tuple(int(x) for x in args.part.split("/"))
         collect(args.out, part, args.groups, args.refine, args.truth_from)
+    elif args.command == "floor":
+        floor_collect(args.out, tuple(int(x) for x in args.part.split("/")))
+    elif args.command == "floor-table":
+        floor_table(args.paths)
     else:
         fit(args.paths, args.truth)
     return 0

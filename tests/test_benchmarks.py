@@ -103,3 +103,30 @@ def test_scans_refuses_unknown_features_or_a_missing_sequence_before_running(tmp
         and f"--fragments {tmp_path}: no make-fragments.json" in result.stderr
     )
     assert "$ byoc" not in result.stderr and not out.exists()
+
+
+def test_the_restart_floor_table_counts_what_each_floor_would_skip(tmp_path):
+    lines = [
+        {"name": "a", "calls": [{"model": "byoc", "before": 0.9, "after": 0.5,
+                                 "restart_seconds": 1.0}]},
+        {"name": "b", "calls": [{"model": "byoc", "before": 0.15, "after": 0.1,
+                                 "restart_seconds": 2.0},
+                                {"model": "fpfh", "before": 0.01, "after": 0.02,
+                                 "restart_seconds": 0.5}]},
+        {"name": "c", "refused": "noise", "calls": []},
+    ]  # fmt: skip
+    path = tmp_path / "floor.jsonl"
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "confidence.py"), "floor-table", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT / "benchmarks",
+    )
+    assert result.returncode == 0, result.stderr
+    rows = {line.split()[0]: line.split() for line in result.stdout.splitlines()[2:]}
+    assert "raised the confidence of 1, by at most 0.010" in result.stdout
+    assert rows["0.05"][1:4] == ["1", "3", "0"]  # the FPFH one only
+    assert rows["0.20"][1:4] == ["2", "3", "0"] and rows["0.20"][5] == "2.5"
+    assert rows["0.45"][6] == "3.5"

@@ -73,3 +73,54 @@ def test_without_refinement_the_cues_say_no_doubt():
     result = register_module.estimate_transform(src, tgt, config, voxel_size=0.02)
     assert result.cues["restart_return"] == 1.0 and result.cues["restart_gain"] == -1.0
     assert torch.allclose(result.T_tgt_src, T, atol=1e-6)
+
+
+def test_the_cues_without_restarts_are_the_most_confident_of_every_refined_model():
+    # what lets a result below the floor skip the restarts: they could only lower it
+    from byoc_cli.pipeline.confidence import MODEL_KINDS, MODELS, probability_right
+
+    base = {
+        "inlier_share": 0.2, "inlier_ratio": 0.1, "inliers": 300.0, "overlap": 0.6,
+        "coarse_inlier_ratio": 0.1, "fitness": 0.5, "rmse": 0.3, "rank": 6.0,
+        "conditioning": 0.05, "shift_deg": 1.0, "shift_voxels": 1.0,
+    }  # fmt: skip
+    for kind in MODEL_KINDS:
+        best = probability_right({**base, **register_module.NO_RESTARTS}, MODELS[kind])
+        for share in (0.0, 1 / 6, 0.5, 5 / 6, 1.0):
+            for gain in (-1.0, -0.2, 0.0, 0.01, 0.3, 1.0):
+                cues = {**base, "restart_return": share, "restart_gain": gain}
+                assert probability_right(cues, MODELS[kind]) <= best + 1e-12
+
+
+@pytest.mark.parametrize(("floor", "ran"), [(0.0, True), (1.0, False)])
+def test_a_result_below_the_floor_skips_the_restarts(monkeypatch, floor, ran):
+    from tests.pipeline.test_register_mutual import _pair
+
+    calls = []
+    restart = register_module._restart
+    monkeypatch.setattr(register_module, "_restart", lambda *a: calls.append(1) or restart(*a))
+    src, tgt, _ = _pair(torch.Generator().manual_seed(0))
+    config = register_module.RegisterConfig(
+        estimator="ransac",
+        num_correspondences=400,
+        max_points=0,
+        refine="multiscale",
+        restart_floor=floor,
+    )
+    result = register_module.estimate_transform(src, tgt, config, voxel_size=0.2)
+    assert bool(calls) == ran and ("restarts" in result.timings) == ran
+    if not ran:
+        assert {k: result.cues[k] for k in register_module.NO_RESTARTS} == (
+            register_module.NO_RESTARTS
+        )
+
+
+def test_the_restart_floor_is_never_above_the_gate():
+    from byoc_cli.pipeline.recipe import preset
+
+    recipe = preset("byoc")
+    assert register_module.register_config(recipe).restart_floor == min(
+        register_module.RESTART_FLOOR, recipe.gate.min_confidence
+    )
+    low = recipe.changed(gate__min_confidence=0.05)
+    assert register_module.register_config(low).restart_floor == 0.05

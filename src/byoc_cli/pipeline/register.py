@@ -32,6 +32,9 @@ from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
 REFINERS = (None, "multiscale")
+#: results less confident than this before the restarts skip them (they could only be less
+#: confident after; on the development set no result below it passed the gate after them)
+RESTART_FLOOR = 0.2
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,10 @@ class RegisterConfig:
             result (:func:`byoc_cli.pipeline.refine.restart_refinement`), keep the end of best
             fitness when it is elsewhere and better by ``SWITCH_GAIN``, and report how the
             restarts agree (``restart_return``, ``restart_gain``).
+        restart_floor: the restarts run only for a result whose confidence before them (with
+            :data:`NO_RESTARTS`, their most confident cues) reaches this: below it they could
+            only lower it (:func:`register_config`: the lower of :data:`RESTART_FLOOR` and
+            the gate's ``--min-confidence``).
         mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
             (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
@@ -75,6 +82,7 @@ class RegisterConfig:
     refine: str | None = None
     mutual: bool = PAPER.matching.mutual
     restarts: bool = PAPER.refinement.restarts
+    restart_floor: float = 0.0
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
@@ -109,6 +117,7 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         refine=None if method == "none" else method,
         mutual=recipe.matching.mutual,
         restarts=recipe.refinement.restarts,
+        restart_floor=min(RESTART_FLOOR, recipe.gate.min_confidence),
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
     )
@@ -226,53 +235,32 @@ def estimate_transform(
     T_coarse = T
     start = timer("fit", start)
 
-    refinement = None
-    restart_cues = {"restart_return": 1.0, "restart_gain": -1.0}  # no restarts: no doubt
     full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
+    refine_voxel = refine_voxel or voxel_size
     if config.refine == "multiscale":
-        refinement = refine_multiscale(
-            full_src, full_tgt, T, refine_voxel or voxel_size, parallel=parallel
-        )
-        T = refinement.T_tgt_src
+        refinement = refine_multiscale(full_src, full_tgt, T, refine_voxel, parallel=parallel)
         start = timer("refine", start)
-        if config.restarts:
-            refinement, restart_cues = _restart(
-                (full_src, full_tgt), refinement, refine_voxel or voxel_size, parallel
-            )
-            T = refinement.T_tgt_src
-            start = timer("restarts", start)
-
-    if refinement is None:  # the fit cues of the result as it is
-        refinement = measure_fit(full_src, full_tgt, T, refine_voxel or voxel_size)
+    else:  # the fit cues of the result as it is
+        refinement = measure_fit(full_src, full_tgt, T, refine_voxel)
         start = timer("measure", start)
-    residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
-    inlier = residual < threshold
-    num_inliers = int(inlier.sum())
-    share = float(w[inlier].sum() / w.sum().clamp_min(1e-12)) if num_inliers >= 3 else 0.0
-    overlap = float(
-        near_occupied(apply_transform(T, src.points), tgt.points, voxel_size).float().mean()
-    )
-    coarse = torch.linalg.vector_norm(apply_transform(T_coarse, p) - q, dim=1) < threshold
-    shift = T @ torch.linalg.inv(T_coarse)
-    cues = {
-        **restart_cues,
-        "inlier_share": share,
-        "inlier_ratio": num_inliers / p.shape[0],
-        "inliers": float(num_inliers),
-        "overlap": overlap,
-        "coarse_inlier_ratio": float(coarse.double().mean()),
-        "fitness": refinement.fitness,
-        "rmse": refinement.rmse,
-        "rank": float(refinement.rank),
-        "conditioning": refinement.conditioning,
-        "shift_deg": _angle_deg(shift[:3, :3]),
-        "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / voxel_size,
-    }
-    # a result that the multiscale ICP did not refine has its own calibration
-    kind = config.confidence_model
-    model = MODELS[kind if config.refine == "multiscale" else f"{kind}-unrefined"]
-    confidence = probability_right(cues, model) if num_inliers >= 3 else 0.0
-    timer("verify", start)
+    judge = _Judge(src, tgt, (p, q, w), T_coarse, voxel_size, threshold, config)
+    verdict = judge(refinement, NO_RESTARTS)
+    start = timer("verify", start)
+    # restarts can only lower the confidence of a result that stays where it is (their cues
+    # at their best are the ones above), so a result that cannot reach the floor skips them
+    if (
+        config.refine == "multiscale"
+        and config.restarts
+        and verdict.confidence >= config.restart_floor
+    ):
+        refinement, restart_cues = _restart(
+            (full_src, full_tgt), refinement, refine_voxel, parallel
+        )
+        start = timer("restarts", start)
+        verdict = judge(refinement, restart_cues)
+        timer("verify", start)
+    T = refinement.T_tgt_src
+    cues, confidence, num_inliers, overlap = verdict
     return RegistrationResult(
         T_tgt_src=T,
         num_correspondences=int(p.shape[0]),
@@ -286,6 +274,65 @@ def estimate_transform(
         timings=timer.timings,
         cues=cues,
     )
+
+
+#: the restart cues of a result without restarts: no doubt (their most confident values)
+NO_RESTARTS = {"restart_return": 1.0, "restart_gain": -1.0}
+
+
+class _Verdict(NamedTuple):
+    cues: dict[str, float]
+    confidence: float
+    num_inliers: int
+    overlap: float
+
+
+class _Judge:
+    """The cues and the confidence of a refinement of one pair's robust fit: the
+    correspondences ``(p, q, w)`` (``(K, 3)``, ``(K, 3)``, ``(K,)``) it came from, the
+    fit ``T_coarse (4, 4)`` and the kept points of ``src`` and ``tgt``."""
+
+    def __init__(self, src, tgt, correspondences, T_coarse, voxel_size, threshold, config):
+        self.src, self.tgt = src, tgt
+        self.p, self.q, self.w = correspondences
+        self.T_coarse, self.voxel_size, self.threshold = T_coarse, voxel_size, threshold
+        # a result that the multiscale ICP did not refine has its own calibration
+        kind = config.confidence_model
+        self.model = MODELS[kind if config.refine == "multiscale" else f"{kind}-unrefined"]
+        self.coarse = float(
+            (
+                torch.linalg.vector_norm(apply_transform(T_coarse, self.p) - self.q, dim=1)
+                < threshold
+            )
+            .double()
+            .mean()
+        )
+
+    def __call__(self, refinement: Refinement, restart_cues: dict[str, float]) -> _Verdict:
+        T, p, q, w = refinement.T_tgt_src, self.p, self.q, self.w
+        residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
+        inlier = residual < self.threshold
+        num_inliers = int(inlier.sum())
+        share = float(w[inlier].sum() / w.sum().clamp_min(1e-12)) if num_inliers >= 3 else 0.0
+        moved = apply_transform(T, self.src.points)
+        overlap = float(near_occupied(moved, self.tgt.points, self.voxel_size).float().mean())
+        shift = T @ torch.linalg.inv(self.T_coarse)
+        cues = {
+            **restart_cues,
+            "inlier_share": share,
+            "inlier_ratio": num_inliers / p.shape[0],
+            "inliers": float(num_inliers),
+            "overlap": overlap,
+            "coarse_inlier_ratio": self.coarse,
+            "fitness": refinement.fitness,
+            "rmse": refinement.rmse,
+            "rank": float(refinement.rank),
+            "conditioning": refinement.conditioning,
+            "shift_deg": _angle_deg(shift[:3, :3]),
+            "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / self.voxel_size,
+        }
+        confidence = probability_right(cues, self.model) if num_inliers >= 3 else 0.0
+        return _Verdict(cues, confidence, num_inliers, overlap)
 
 
 #: a restart's end replaces the refined result when its fitness is higher by this
