@@ -228,6 +228,15 @@ def _truths(paths: list[Path]) -> dict[str, dict]:
     return {r["name"]: {k: r[k] for k in keys if k in r} for r in _load(paths)}
 
 
+def part_of_set(part: tuple[int, int]) -> Iterator[tuple]:
+    """The pairs of the set (:func:`rgbd_pairs` and the rest, in order) of part ``(I, N)``:
+    every N-th from the I-th."""
+    sources = (rgbd_pairs(), fragment_pairs(), variant_pairs(), negative_pairs())
+    for count, pair in enumerate(p for source in sources for p in source):
+        if count % part[1] == part[0] - 1:
+            yield pair
+
+
 def collect(
     out: Path,
     part: tuple[int, int],
@@ -247,47 +256,40 @@ def collect(
     settings = {} if refine is None else {"refine": refine}
     byoc = Registrar("byoc", device="cpu", fallback=None)
     fpfh = Registrar("fpfh", device="cpu")
-    sources = (rgbd_pairs(), fragment_pairs(), variant_pairs(), negative_pairs())
-    count = -1
     with out.open("a") as file:
-        for source in sources:
-            for name, group, load_src, load_tgt, T_gt, scale in source:
-                count += 1
-                if name in done or count % part[1] != part[0] - 1:
-                    continue
-                if groups and group not in groups:
-                    continue
-                record = {"name": name, "group": group, "scale": scale}
-                src, tgt = load_src(), load_tgt()
-                record["byoc"] = _result(byoc, src, tgt, **settings)
-                # FPFH with the learned path's refinement: what the fallback runs, which it
-                # does only below the gate (with a margin for the refitted model)
-                if refine is not None:
-                    record["fpfh"] = _result(fpfh, src, tgt, **settings)
-                elif record["byoc"].get("confidence", 0.0) < FALLBACK_MARGIN:
-                    record["fpfh"] = _result(fpfh, src, tgt, refine="multiscale")
-                else:
-                    record["fpfh"] = {"skipped": f"learned confidence >= {FALLBACK_MARGIN}"}
-                if name in truths:
-                    record.update(truths[name])
-                elif T_gt is not None:
-                    T_gt = np.array(T_gt, dtype=np.float64)
-                    T_gt[:3, 3] *= scale
-                    record["T_gt"] = T_gt.tolist()
-                    try:
-                        record["T_gt_refined"] = _refined_truth(byoc, src, tgt, T_gt).tolist()
-                    except Exception as exc:
-                        record["T_gt_refined_error"] = str(exc)
-                file.write(json.dumps(record) + "\n")
-                file.flush()
-                print(
-                    f"{name:40s} "
-                    + " ".join(
-                        f"{k}={record[k].get('confidence', float('nan')):.3f}"
-                        for k in ("byoc", "fpfh")
-                    ),
-                    flush=True,
-                )
+        for name, group, load_src, load_tgt, T_gt, scale in part_of_set(part):
+            if name in done or (groups and group not in groups):
+                continue
+            record = {"name": name, "group": group, "scale": scale}
+            src, tgt = load_src(), load_tgt()
+            record["byoc"] = _result(byoc, src, tgt, **settings)
+            # FPFH with the learned path's refinement: what the fallback runs, which it
+            # does only below the gate (with a margin for the refitted model)
+            if refine is not None:
+                record["fpfh"] = _result(fpfh, src, tgt, **settings)
+            elif record["byoc"].get("confidence", 0.0) < FALLBACK_MARGIN:
+                record["fpfh"] = _result(fpfh, src, tgt, refine="multiscale")
+            else:
+                record["fpfh"] = {"skipped": f"learned confidence >= {FALLBACK_MARGIN}"}
+            if name in truths:
+                record.update(truths[name])
+            elif T_gt is not None:
+                T_gt = np.array(T_gt, dtype=np.float64)
+                T_gt[:3, 3] *= scale
+                record["T_gt"] = T_gt.tolist()
+                try:
+                    record["T_gt_refined"] = _refined_truth(byoc, src, tgt, T_gt).tolist()
+                except Exception as exc:
+                    record["T_gt_refined_error"] = str(exc)
+            file.write(json.dumps(record) + "\n")
+            file.flush()
+            print(
+                f"{name:40s} "
+                + " ".join(
+                    f"{k}={record[k].get('confidence', float('nan')):.3f}" for k in ("byoc", "fpfh")
+                ),
+                flush=True,
+            )
 
 
 KINDS = ("byoc", "fpfh")
@@ -463,28 +465,20 @@ def floor_collect(out: Path, part: tuple[int, int]) -> None:
 
     register.estimate_transform = both  # the registrar calls it through the module
     registrar = Registrar("byoc", device="cpu", fallback="fpfh")
-    sources = (rgbd_pairs(), fragment_pairs(), variant_pairs(), negative_pairs())
-    count = -1
     with out.open("w") as file:
-        for source in sources:
-            for name, group, load_src, load_tgt, _, _ in source:
-                count += 1
-                if count % part[1] != part[0] - 1:
-                    continue
-                calls.clear()
-                record = {"name": name, "group": group}
-                try:
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")
-                        record["confidence"] = registrar.register(load_src(), load_tgt()).confidence
-                except Exception as exc:  # a refusal: no registration to measure
-                    record["refused"] = str(exc)
-                record["calls"] = list(calls)
-                file.write(json.dumps(record) + "\n")
-                file.flush()
-                print(
-                    name, [(c["model"], round(c["before"], 3), round(c["after"], 3)) for c in calls]
-                )
+        for name, group, load_src, load_tgt, _, _ in part_of_set(part):
+            calls.clear()
+            record = {"name": name, "group": group}
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    record["confidence"] = registrar.register(load_src(), load_tgt()).confidence
+            except Exception as exc:  # a refusal: no registration to measure
+                record["refused"] = str(exc)
+            record["calls"] = list(calls)
+            file.write(json.dumps(record) + "\n")
+            file.flush()
+            print(name, [(c["model"], round(c["before"], 3), round(c["after"], 3)) for c in calls])
 
 
 def floor_table(paths: list[Path]) -> None:
