@@ -82,7 +82,7 @@ class RegisterConfig:
     refine: str | None = None
     mutual: bool = PAPER.matching.mutual
     restarts: bool = PAPER.refinement.restarts
-    restart_floor: float = 0.0
+    restart_floor: float = min(RESTART_FLOOR, PAPER.gate.min_confidence)
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
