@@ -143,10 +143,7 @@ def multiscale_icp(src: PreparedCloud, tgt: PreparedCloud, T_init: np.ndarray) -
     reg = o3d.pipelines.registration
     T = np.asarray(T_init, np.float64)
     result = None
-    for level, ((voxel_factor, dist_factor), iters) in enumerate(
-        zip(ICP_SCALES, ICP_ITERATIONS, strict=True)
-    ):
-        del voxel_factor
+    for level, ((_, dist_factor), iters) in enumerate(zip(ICP_SCALES, ICP_ITERATIONS, strict=True)):
         dist = dist_factor * src.voxel_size
         result = reg.registration_icp(
             src.levels[level],

@@ -628,10 +628,10 @@ class _StartSearch:
         if stale:
             queries = moved[stale].reshape(-1, 3)
             found = _search(self.index, queries, self.reach, self.parallel)
-            coordinates = candidate_coordinates(self.index, found)
-            for k, (a, part) in enumerate(zip(stale, found.chunk(len(stale)), strict=True)):
+            coordinates = candidate_coordinates(self.index, found).chunk(len(stale), dim=1)
+            for a, part, coords in zip(stale, found.chunk(len(stale)), coordinates, strict=True):
                 self.anchor[ids[a]] = moved[a]
-                self.candidates[ids[a]] = (part, coordinates.chunk(len(stale), dim=1)[k])
+                self.candidates[ids[a]] = (part, coords)
         candidates = torch.cat([self.candidates[s][0] for s in ids])
         coordinates = torch.cat([self.candidates[s][1] for s in ids], dim=1)
         near = nearest_of(self.index, moved.reshape(-1, 3), candidates, coordinates)

@@ -37,6 +37,12 @@ REFINERS = (None, "multiscale")
 RESTART_FLOOR = 0.2
 
 
+def restart_floor(min_confidence: float) -> float:
+    """The restart floor under a gate of ``min_confidence``: :data:`RESTART_FLOOR`, or the
+    gate when that is lower (a result that could pass it is never denied its restarts)."""
+    return min(RESTART_FLOOR, min_confidence)
+
+
 @dataclass(frozen=True)
 class RegisterConfig:
     """Settings of :func:`estimate_transform` and :func:`register_clouds`, flat: a
@@ -62,8 +68,7 @@ class RegisterConfig:
             restarts agree (``restart_return``, ``restart_gain``).
         restart_floor: the restarts run only for a result whose confidence before them (with
             :data:`NO_RESTARTS`, their most confident cues) reaches this: below it they could
-            only lower it (:func:`register_config`: the lower of :data:`RESTART_FLOOR` and
-            the gate's ``--min-confidence``).
+            only lower it (:func:`restart_floor` of the gate's ``--min-confidence``).
         mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
             (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
@@ -82,7 +87,7 @@ class RegisterConfig:
     refine: str | None = None
     mutual: bool = PAPER.matching.mutual
     restarts: bool = PAPER.refinement.restarts
-    restart_floor: float = min(RESTART_FLOOR, PAPER.gate.min_confidence)
+    restart_floor: float = restart_floor(PAPER.gate.min_confidence)
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
@@ -117,7 +122,7 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         refine=None if method == "none" else method,
         mutual=recipe.matching.mutual,
         restarts=recipe.refinement.restarts,
-        restart_floor=min(RESTART_FLOOR, recipe.gate.min_confidence),
+        restart_floor=restart_floor(recipe.gate.min_confidence),
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
     )

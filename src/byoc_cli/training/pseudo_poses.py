@@ -32,6 +32,8 @@ import numpy as np
 
 from byoc_cli.pipeline import odometry, posegraph
 
+#: the finest ICP correspondence distance as a multiple of the voxel: the pose graph's
+FINE_DISTANCE = posegraph.ICP_SCALES[-1][1]
 #: frame points farther than this from the camera are dropped (Kinect noise grows with z^2)
 DEFAULT_MAX_DEPTH = odometry.DEFAULT_MAX_DEPTH
 
@@ -135,10 +137,9 @@ def _fine_points(cloud: Any) -> np.ndarray:
 
 def _global(clouds, src: int, tgt: int, config: PseudoPoseConfig, global_start):
     """A global start for used frame ``src`` onto ``tgt``: ``(origin, T | None)``."""
-    from byoc_cli.pipeline.posegraph import prepared_fpfh_ransac
-
     if global_start is None:
-        return "fpfh", prepared_fpfh_ransac(clouds[src], clouds[tgt], seed=config.seed + src)
+        start = posegraph.prepared_fpfh_ransac(clouds[src], clouds[tgt], seed=config.seed + src)
+        return "fpfh", start
     T = global_start(src, _fine_points(clouds[src]), tgt, _fine_points(clouds[tgt]))
     return "learned", T
 
@@ -147,17 +148,15 @@ def _odometry_step(
     clouds, k: int, velocity: np.ndarray, config: PseudoPoseConfig, global_start=None
 ):
     """Register used frame ``k`` onto ``k - 1``; returns the best estimate and its origin."""
-    from byoc_cli.pipeline.posegraph import multiscale_icp
-
     src, tgt = clouds[k], clouds[k - 1]
-    tries = [("identity", multiscale_icp(src, tgt, np.eye(4)))]
+    tries = [("identity", posegraph.multiscale_icp(src, tgt, np.eye(4)))]
     if not np.allclose(velocity, np.eye(4)):
-        tries.append(("velocity", multiscale_icp(src, tgt, velocity)))
+        tries.append(("velocity", posegraph.multiscale_icp(src, tgt, velocity)))
     best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
     if not _fits(best[1], config.odometry_min_fitness, config.odometry_max_rmse):
         origin, start = _global(clouds, k, k - 1, config, global_start)
         if start is not None:
-            tries.append((origin, multiscale_icp(src, tgt, start)))
+            tries.append((origin, posegraph.multiscale_icp(src, tgt, start)))
             best = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
     return best
 
@@ -273,7 +272,7 @@ def estimate_pairs(
         edges = [_local_edge(e, local) for e in odo_edges if e.src in local]
         edges += [_local_edge(e, local) for e, _, _ in seg_loops]
         optimised, edge_kept = optimize_pose_graph(
-            [chain[k] for k in nodes], edges, ICP_FINE_DISTANCE_FACTOR * config.voxel_size
+            [chain[k] for k in nodes], edges, FINE_DISTANCE * config.voxel_size
         )
         for k, pose in zip(nodes, optimised, strict=True):
             poses[k] = pose
@@ -296,14 +295,8 @@ def estimate_pairs(
     return SequencePairs(frames, poses, segments, kept_pairs, candidates, kept, stats)
 
 
-#: the finest ICP correspondence distance as a multiple of the voxel (posegraph.ICP_SCALES)
-ICP_FINE_DISTANCE_FACTOR = 1.5
-
-
 def _direct(clouds, a: int, b: int, T_init: np.ndarray):
-    from byoc_cli.pipeline.posegraph import multiscale_icp
-
-    return multiscale_icp(clouds[b], clouds[a], T_init)
+    return posegraph.multiscale_icp(clouds[b], clouds[a], T_init)
 
 
 def _local_edge(edge: Any, local: dict[int, int]) -> Any:
