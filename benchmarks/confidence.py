@@ -533,6 +533,8 @@ def main(argv: list[str] | None = None) -> int:
         part = tuple(int(x) for x in args.part.split("/"))
         collect(args.out, part, args.groups, args.refine, args.truth_from)
     elif args.command == "floor":
+        if args.out.exists():  # never write over a collection
+            parser.error(f"--out {args.out}: exists; give a new file")
         floor_collect(args.out, tuple(int(x) for x in args.part.split("/")))
     elif args.command == "floor-table":
         floor_table(args.paths)

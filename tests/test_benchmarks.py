@@ -130,3 +130,17 @@ def test_the_restart_floor_table_counts_what_each_floor_would_skip(tmp_path):
     assert rows["0.05"][1:4] == ["1", "3", "0"]  # the FPFH one only
     assert rows["0.20"][1:4] == ["2", "3", "0"] and rows["0.20"][5] == "2.5"
     assert rows["0.45"][6] == "3.5"
+
+
+def test_the_restart_floor_collection_never_writes_over_a_file(tmp_path):
+    path = tmp_path / "floor.jsonl"
+    path.write_text("kept\n")
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "confidence.py"), "floor", "--out", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert f"--out {path}: exists; give a new file" in result.stderr
+    assert path.read_text() == "kept\n"
