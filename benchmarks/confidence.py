@@ -25,9 +25,19 @@ Usage:
     python benchmarks/confidence.py collect --out dev.jsonl [--part I/N]
     python benchmarks/confidence.py collect --out coarse.jsonl --refine none \
         --truth-from dev.jsonl
-    python benchmarks/confidence.py fit dev.jsonl [more.jsonl ...]
+    python benchmarks/confidence.py fit dev.jsonl [more.jsonl ...] [--checked check.jsonl]
+    python benchmarks/confidence.py check-truth dev.jsonl [more.jsonl ...] --out check.jsonl \
+        [--part I/N]
     python benchmarks/confidence.py floor --out floor.jsonl [--part I/N]
     python benchmarks/confidence.py floor-table floor.jsonl [more.jsonl ...]
+
+`check-truth` refines every pair's ground truth a second time, with Open3D's multiscale
+point-to-plane ICP instead of byoc's (the first refinement is the collection's
+``T_gt_refined``). `fit --checked` then also scores the gate on the pairs whose truth the data
+determine: the two refinements agree within a quarter of the thresholds. Where they do not (a
+scene that slides along a wall or a box, a fragment fused with drift), right and wrong at
+5 deg and 10 cm are not known, and those pairs are left out of that second table (not of the
+fit).
 
 `floor` registers every pair as `byoc register` does (the FPFH fallback included) and, for
 each refined registration, also without the refinement's restarts: the confidence before the
@@ -45,6 +55,7 @@ import os
 import sys
 import time
 import warnings
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -73,6 +84,12 @@ GROSS_DEG, GROSS_M = 15.0, 0.30
 FALLBACK_MARGIN = 0.7
 #: the share of right results the default threshold keeps
 RECALL = 0.95
+#: a pair's truth is determined when its two refinements agree within these (a quarter of the
+#: thresholds; metres times the pair's scale)
+CHECK_DEG, CHECK_M = ROT_DEG / 4, TRANS_M / 4
+#: the levels of the second refinement (Open3D's point-to-plane ICP): voxel (metres times the
+#: pair's scale) and iterations; correspondences within 1.5 voxels
+CHECK_LEVELS = ((0.04, 40), (0.02, 40), (0.01, 40))
 
 
 def _gross(record: dict) -> bool:
@@ -228,6 +245,58 @@ def _truths(paths: list[Path]) -> dict[str, dict]:
     return {r["name"]: {k: r[k] for k in keys if k in r} for r in _load(paths)}
 
 
+def open3d_truth(src: np.ndarray, tgt: np.ndarray, T_gt: np.ndarray, scale: float) -> np.ndarray:
+    """``T_gt (4, 4)`` refined by Open3D's multiscale point-to-plane ICP on ``src (N, 3)`` and
+    ``tgt (M, 3)``: a second refinement of the truth, by other code than byoc's."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    T = np.asarray(T_gt, dtype=np.float64)
+    for voxel, iterations in CHECK_LEVELS:
+        v = voxel * scale
+        clouds = []
+        for points in (src, tgt):
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+            cloud = cloud.voxel_down_sample(v)
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(2.5 * v, 30))
+            clouds.append(cloud)
+        T = reg.registration_icp(
+            *clouds,
+            1.5 * v,
+            T,
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(1e-7, 1e-7, iterations),
+        ).transformation
+    return np.asarray(T)
+
+
+def check_truth(paths: list[Path], out: Path, part: tuple[int, int]) -> None:
+    """One line per pair of the collections with a ground truth (of ``part``, as
+    :func:`part_of_set`): its second refinement."""
+    records = {r["name"]: r for r in _load(paths) if r.get("T_gt") is not None}
+    with out.open("w") as file:
+        for name, _, load_src, load_tgt, _, scale in part_of_set(part):
+            if name not in records:
+                continue
+            T_gt = np.array(records[name]["T_gt"])
+            T = open3d_truth(np.asarray(load_src()), np.asarray(load_tgt()), T_gt, scale)
+            file.write(json.dumps({"name": name, "T_gt_open3d": T.tolist()}) + "\n")
+            file.flush()
+            rot, trans = errors(T, np.array(records[name].get("T_gt_refined", T_gt)))
+            print(f"{name:40s} refinements apart: {rot:.2f} deg {100 * trans / scale:.2f} cm")
+
+
+def determined(record: dict) -> bool:
+    """Whether right and wrong are known for ``record``: it has no truth (nothing can be
+    right), or both refinements of its truth exist and agree within CHECK_DEG and CHECK_M."""
+    if record.get("T_gt") is None:
+        return True
+    if "T_gt_refined" not in record or "T_gt_open3d" not in record:
+        return False
+    rot, trans = errors(np.array(record["T_gt_refined"]), np.array(record["T_gt_open3d"]))
+    return rot <= CHECK_DEG and trans / record["scale"] <= CHECK_M
+
+
 def part_of_set(part: tuple[int, int]) -> Iterator[tuple]:
     """The pairs of the set (:func:`rgbd_pairs` and the rest, in order) of part ``(I, N)``:
     every N-th from the I-th."""
@@ -377,10 +446,14 @@ def _table(records, p_byoc, p_fpfh, judged_byoc, judged_fpfh, fallback: bool):
     return best
 
 
-def fit(paths: list[Path], truth: str) -> None:
+def fit(paths: list[Path], truth: str, checked: list[Path] | None = None) -> None:
     from byoc_cli.pipeline.confidence import FEATURES
 
     records = _load(paths)
+    for record in _load(checked or []):
+        for r in records:
+            if r["name"] == record["name"]:
+                r["T_gt_open3d"] = record["T_gt_open3d"]
     print(f"{len(records)} pairs, judged against {truth} truth")
     moved = [r for r in records if "T_gt_refined" in r]
     shifts = [errors(np.array(r["T_gt_refined"]), np.array(r["T_gt"])) for r in moved]
@@ -435,6 +508,26 @@ def fit(paths: list[Path], truth: str) -> None:
             "wrong results with the highest p:",
             ", ".join(f"{n} {p:.3f}" for p, n in wrong[::-1][:8]),
         )
+    if checked:
+        _determined_tables(records, ps, judged, policies)
+
+
+def _determined_tables(records: list[dict], ps: dict, judged: dict, policies: list) -> None:
+    """The precision and recall tables again, on the pairs whose truth the data determine
+    (the fit and its cross-validation are those of all pairs)."""
+    keep = np.array([determined(r) for r in records])
+    left = Counter(r["group"] for r, k in zip(records, keep, strict=True) if not k)
+    print(
+        f"\n== pairs whose truth the data determine (its two refinements within {CHECK_DEG:g} deg"
+        f" and {100 * CHECK_M:g} cm): {int(keep.sum())} of {len(records)}; left out, by group:",
+        ", ".join(f"{g} {n}" for g, n in sorted(left.items())) or "none",
+    )
+    other = {"byoc": "fpfh", "fpfh": "byoc"}
+    for title, kind, fallback in policies:
+        print(f"\n== {title}, determined truth only")
+        sub = [records[i] for i in np.flatnonzero(keep)]
+        pick = [[judged[k][i] for i in np.flatnonzero(keep)] for k in (kind, other[kind])]
+        _table(sub, ps[kind][keep], ps[other[kind]][keep], *pick, fallback)
 
 
 def floor_collect(out: Path, part: tuple[int, int]) -> None:
@@ -523,6 +616,13 @@ def main(argv: list[str] | None = None) -> int:
     f = sub.add_parser("fit")
     f.add_argument("paths", type=Path, nargs="+")
     f.add_argument("--truth", choices=("gt", "refined"), default="refined")
+    f.add_argument(
+        "--checked", type=Path, nargs="*", help="check-truth output: also score determined pairs"
+    )
+    k = sub.add_parser("check-truth")
+    k.add_argument("paths", type=Path, nargs="+")
+    k.add_argument("--out", type=Path, required=True)
+    k.add_argument("--part", default="1/1", help="I/N: every N-th pair from the I-th")
     g = sub.add_parser("floor")
     g.add_argument("--out", type=Path, required=True)
     g.add_argument("--part", default="1/1", help="I/N: every N-th pair from the I-th")
@@ -538,8 +638,12 @@ def main(argv: list[str] | None = None) -> int:
         floor_collect(args.out, tuple(int(x) for x in args.part.split("/")))
     elif args.command == "floor-table":
         floor_table(args.paths)
+    elif args.command == "check-truth":
+        if args.out.exists():  # never write over a file
+            parser.error(f"--out {args.out}: exists; give a new file")
+        check_truth(args.paths, args.out, tuple(int(x) for x in args.part.split("/")))
     else:
-        fit(args.paths, args.truth)
+        fit(args.paths, args.truth, args.checked)
     return 0
 
 

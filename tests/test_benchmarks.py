@@ -144,3 +144,100 @@ def test_the_restart_floor_collection_never_writes_over_a_file(tmp_path):
     assert result.returncode == 2
     assert f"--out {path}: exists; give a new file" in result.stderr
     assert path.read_text() == "kept\n"
+
+
+def _confidence(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "confidence.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT / "benchmarks",
+    )
+
+
+def _turned(deg: float, shift_m: float = 0.0) -> list[list[float]]:
+    import numpy as np
+
+    a = np.radians(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[0, 3] = shift_m
+    return T.tolist()
+
+
+def test_fit_scores_the_determined_pairs_apart(tmp_path):
+    cues = {"restart_return": 1.0, "restart_gain": -1.0, "inlier_share": 0.3,
+            "inlier_ratio": 0.2, "inliers": 500.0, "overlap": 0.6, "coarse_inlier_ratio": 0.2,
+            "fitness": 0.6, "rmse": 0.3, "rank": 6.0, "conditioning": 0.05, "shift_deg": 0.5,
+            "shift_voxels": 0.5}  # fmt: skip
+    lines, checked = [], []
+    for n in range(24):
+        right = n % 3 != 0
+        c = {**cues, "fitness": 0.4 + 0.4 * right + 0.01 * (n % 5), "overlap": 0.3 + 0.1 * (n % 4)}
+        record = {"name": f"p{n}", "group": f"g{n % 3}", "scale": 1.0,
+                  "byoc": {"T": _turned(0.0), "cues": c, "confidence": 0.5},
+                  "fpfh": {"skipped": "learned confidence >= 0.7"},
+                  "T_gt": _turned(0.0 if right else 20.0)}  # fmt: skip
+        record["T_gt_refined"] = record["T_gt"]
+        lines.append(record)
+        # pairs 1 and 2: the second refinement lands 6 cm or 2 deg away; 4: none
+        away = {1: _turned(0.0, 0.06), 2: _turned(2.0)}.get(n, record["T_gt"])
+        if n != 4:
+            checked.append({"name": f"p{n}", "T_gt_open3d": away})
+    dev, check = tmp_path / "dev.jsonl", tmp_path / "check.jsonl"
+    dev.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    check.write_text("".join(json.dumps(line) + "\n" for line in checked))
+    result = _confidence("fit", str(dev), "--checked", str(check))
+    assert result.returncode == 0, result.stderr
+    assert (
+        "== pairs whose truth the data determine (its two refinements within 1.25 deg and 2.5 cm):"
+        " 21 of 24; left out, by group: g1 2, g2 1" in result.stdout
+    )
+    assert "== learned only, determined truth only" in result.stdout
+    plain = _confidence("fit", str(dev))
+    assert plain.returncode == 0 and "determined truth only" not in plain.stdout
+
+
+def test_the_truth_check_never_writes_over_a_file(tmp_path):
+    path = tmp_path / "check.jsonl"
+    path.write_text("kept\n")
+    result = _confidence("check-truth", str(tmp_path / "dev.jsonl"), "--out", str(path))
+    assert result.returncode == 2
+    assert f"--out {path}: exists; give a new file" in result.stderr
+    assert path.read_text() == "kept\n"
+
+
+def test_the_second_refinement_recovers_a_box_corner_from_a_near_truth():
+    import numpy as np
+    import pytest
+
+    pytest.importorskip("open3d")
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from confidence import open3d_truth
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    rng = np.random.default_rng(0)
+    faces = []
+    for axis in range(3):  # three walls of a 2 m corner, 1 mm noise
+        p = rng.uniform(0, 2, (6000, 3))
+        p[:, axis] = 0.001 * rng.standard_normal(6000)
+        faces.append(p)
+    tgt = np.concatenate(faces)
+    T = np.array(_turned(3.0, 0.05))
+    src = (tgt - T[:3, 3]) @ T[:3, :3]  # T maps src onto tgt
+    near = np.array(_turned(2.0, 0.03))  # 1 deg and 2 cm from the truth
+    for scale in (1.0, 0.01):
+        found = open3d_truth(src * scale, tgt * scale, _scaled(near, scale), scale)
+        D = np.linalg.inv(found) @ _scaled(T, scale)
+        assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.05
+        assert np.linalg.norm(D[:3, 3]) / scale < 0.002
+
+
+def _scaled(T, scale: float):
+    import numpy as np
+
+    T = np.array(T, dtype=np.float64)
+    T[:3, 3] *= scale
+    return T
