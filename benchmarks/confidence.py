@@ -28,16 +28,21 @@ Usage:
     python benchmarks/confidence.py fit dev.jsonl [more.jsonl ...] [--checked check.jsonl]
     python benchmarks/confidence.py check-truth dev.jsonl [more.jsonl ...] --out check.jsonl \
         [--part I/N]
+    python benchmarks/confidence.py agreement dev.jsonl ... --coarse coarse.jsonl ... \
+        [--checked check.jsonl ...]
     python benchmarks/confidence.py floor --out floor.jsonl [--part I/N]
     python benchmarks/confidence.py floor-table floor.jsonl [more.jsonl ...]
 
 `check-truth` refines every pair's ground truth a second time, with Open3D's multiscale
 point-to-plane ICP instead of byoc's (the first refinement is the collection's
 ``T_gt_refined``). `fit --checked` then also scores the gate on the pairs whose truth the data
-determine: the two refinements agree within a quarter of the thresholds. Where they do not (a
-scene that slides along a wall or a box, a fragment fused with drift), right and wrong at
-5 deg and 10 cm are not known, and those pairs are left out of that second table (not of the
-fit).
+determine: the two refinements agree within a quarter of the thresholds. Where they do not
+(the clouds' planes leave the pose free to slide, for one), right and wrong at 5 deg and
+10 cm are not known, and those pairs are left out of that second table (not of the fit).
+
+`agreement` counts, per group, the learned results that agree with FPFH's unrefined result of
+the same pair (from a `collect --refine none` collection; within AGREE_DEG and AGREE_M) and
+those that do not, right and wrong: how much a second opinion of other features says.
 
 `floor` registers every pair as `byoc register` does (the FPFH fallback included) and, for
 each refined registration, also without the refinement's restarts: the confidence before the
@@ -87,6 +92,8 @@ RECALL = 0.95
 #: a pair's truth is determined when its two refinements agree within these (a quarter of the
 #: thresholds; metres times the pair's scale)
 CHECK_DEG, CHECK_M = ROT_DEG / 4, TRANS_M / 4
+#: a learned result agrees with FPFH's when they are this close (metres times the pair's scale)
+AGREE_DEG, AGREE_M = 10.0, 0.30
 #: the levels of the second refinement (Open3D's point-to-plane ICP): voxel (metres times the
 #: pair's scale) and iterations; correspondences within 1.5 voxels
 CHECK_LEVELS = ((0.04, 40), (0.02, 40), (0.01, 40))
@@ -530,6 +537,37 @@ def _determined_tables(records: list[dict], ps: dict, judged: dict, policies: li
         _table(sub, ps[kind][keep], ps[other[kind]][keep], *pick, fallback)
 
 
+def agreement(paths: list[Path], coarse: list[Path], checked: list[Path] | None) -> None:
+    """Per group: learned results that agree with FPFH's unrefined one, right and wrong, and
+    those that do not (or where FPFH refused); with ``checked``, determined pairs only."""
+    records = _load(paths)
+    fpfh = {r["name"]: r["fpfh"] for r in _load(coarse)}
+    second = {r["name"]: r["T_gt_open3d"] for r in _load(checked or [])}
+    counts: dict[str, Counter] = {}
+    for r in records:
+        if r["name"] in second:
+            r["T_gt_open3d"] = second[r["name"]]
+        judged = _judge(r, "byoc", "refined")
+        if judged is None or r["name"] not in fpfh or (checked and not determined(r)):
+            continue
+        other = fpfh[r["name"]]
+        if "T" not in other:
+            key = "fpfh refused"
+        else:
+            rot, trans = errors(np.array(r["byoc"]["T"]), np.array(other["T"]))
+            key = "agree" if rot < AGREE_DEG and trans / r["scale"] < AGREE_M else "disagree"
+        counts.setdefault(r["group"], Counter())[(key, judged["right"])] += 1
+    total = sum(counts.values(), Counter())
+    print(
+        f"learned results against FPFH's unrefined ones (within {AGREE_DEG:g} deg and"
+        f" {100 * AGREE_M:g} cm){', determined truth only' if checked else ''}: right / wrong"
+    )
+    print(f"{'group':22s} {'agree':>9s} {'disagree':>9s} {'refused':>9s}")
+    for group, c in [*sorted(counts.items()), ("all", total)]:
+        cells = [f"{c[(k, True)]}/{c[(k, False)]}" for k in ("agree", "disagree", "fpfh refused")]
+        print(f"{group:22s} {cells[0]:>9s} {cells[1]:>9s} {cells[2]:>9s}")
+
+
 def floor_collect(out: Path, part: tuple[int, int]) -> None:
     """Every pair's refined registrations with and without the restarts, one line per pair."""
     import dataclasses
@@ -619,6 +657,10 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument(
         "--checked", type=Path, nargs="*", help="check-truth output: also score determined pairs"
     )
+    a = sub.add_parser("agreement")
+    a.add_argument("paths", type=Path, nargs="+")
+    a.add_argument("--coarse", type=Path, nargs="+", required=True)
+    a.add_argument("--checked", type=Path, nargs="*")
     k = sub.add_parser("check-truth")
     k.add_argument("paths", type=Path, nargs="+")
     k.add_argument("--out", type=Path, required=True)
@@ -638,6 +680,8 @@ def main(argv: list[str] | None = None) -> int:
         floor_collect(args.out, tuple(int(x) for x in args.part.split("/")))
     elif args.command == "floor-table":
         floor_table(args.paths)
+    elif args.command == "agreement":
+        agreement(args.paths, args.coarse, args.checked)
     elif args.command == "check-truth":
         if args.out.exists():  # never write over a file
             parser.error(f"--out {args.out}: exists; give a new file")

@@ -241,3 +241,27 @@ def _scaled(T, scale: float):
     T = np.array(T, dtype=np.float64)
     T[:3, 3] *= scale
     return T
+
+
+def test_agreement_counts_learned_results_against_fpfh_ones(tmp_path):
+    dev, coarse = [], []
+    #  name: learned result (deg), truth (deg), FPFH's unrefined result (deg or refused)
+    for name, mine, truth, other in (
+        ("a", 0.0, 0.0, 3.0),  # right, agrees
+        ("b", 0.0, 20.0, 2.0),  # wrong, agrees
+        ("c", 0.0, 0.0, 40.0),  # right, disagrees
+        ("d", 0.0, 30.0, None),  # wrong, FPFH refused
+    ):
+        dev.append({"name": name, "group": "g", "scale": 1.0,
+                    "byoc": {"T": _turned(mine), "cues": {}}, "fpfh": {"skipped": "-"},
+                    "T_gt": _turned(truth), "T_gt_refined": _turned(truth)})  # fmt: skip
+        fpfh = {"refused": "no"} if other is None else {"T": _turned(other), "cues": {}}
+        coarse.append({"name": name, "group": "g", "scale": 1.0, "fpfh": fpfh})
+    for path, lines in ((tmp_path / "dev.jsonl", dev), (tmp_path / "coarse.jsonl", coarse)):
+        path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    result = _confidence(
+        "agreement", str(tmp_path / "dev.jsonl"), "--coarse", str(tmp_path / "coarse.jsonl")
+    )
+    assert result.returncode == 0, result.stderr
+    rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines()[2:]}
+    assert rows["g"] == ["1/1", "1/0", "0/1"] and rows["all"] == rows["g"]
