@@ -293,6 +293,16 @@ def check_truth(paths: list[Path], out: Path, part: tuple[int, int]) -> None:
             print(f"{name:40s} refinements apart: {rot:.2f} deg {100 * trans / scale:.2f} cm")
 
 
+def _with_checks(records: list[dict], checked: list[Path] | None) -> list[dict]:
+    """``records``, each given its second refinement (``T_gt_open3d``) from the
+    :func:`check_truth` files ``checked``, where they have one."""
+    second = {r["name"]: r["T_gt_open3d"] for r in _load(checked or [])}
+    for r in records:
+        if r["name"] in second:
+            r["T_gt_open3d"] = second[r["name"]]
+    return records
+
+
 def determined(record: dict) -> bool:
     """Whether right and wrong are known for ``record``: it has no truth (nothing can be
     right), or both refinements of its truth exist and agree within CHECK_DEG and CHECK_M."""
@@ -456,11 +466,7 @@ def _table(records, p_byoc, p_fpfh, judged_byoc, judged_fpfh, fallback: bool):
 def fit(paths: list[Path], truth: str, checked: list[Path] | None = None) -> None:
     from byoc_cli.pipeline.confidence import FEATURES
 
-    records = _load(paths)
-    for record in _load(checked or []):
-        for r in records:
-            if r["name"] == record["name"]:
-                r["T_gt_open3d"] = record["T_gt_open3d"]
+    records = _with_checks(_load(paths), checked)
     print(f"{len(records)} pairs, judged against {truth} truth")
     moved = [r for r in records if "T_gt_refined" in r]
     shifts = [errors(np.array(r["T_gt_refined"]), np.array(r["T_gt"])) for r in moved]
@@ -530,23 +536,21 @@ def _determined_tables(records: list[dict], ps: dict, judged: dict, policies: li
         ", ".join(f"{g} {n}" for g, n in sorted(left.items())) or "none",
     )
     other = {"byoc": "fpfh", "fpfh": "byoc"}
+    rows = np.flatnonzero(keep)
+    sub = [records[i] for i in rows]
     for title, kind, fallback in policies:
         print(f"\n== {title}, determined truth only")
-        sub = [records[i] for i in np.flatnonzero(keep)]
-        pick = [[judged[k][i] for i in np.flatnonzero(keep)] for k in (kind, other[kind])]
+        pick = [[judged[k][i] for i in rows] for k in (kind, other[kind])]
         _table(sub, ps[kind][keep], ps[other[kind]][keep], *pick, fallback)
 
 
 def agreement(paths: list[Path], coarse: list[Path], checked: list[Path] | None) -> None:
     """Per group: learned results that agree with FPFH's unrefined one, right and wrong, and
     those that do not (or where FPFH refused); with ``checked``, determined pairs only."""
-    records = _load(paths)
+    records = _with_checks(_load(paths), checked)
     fpfh = {r["name"]: r["fpfh"] for r in _load(coarse)}
-    second = {r["name"]: r["T_gt_open3d"] for r in _load(checked or [])}
     counts: dict[str, Counter] = {}
     for r in records:
-        if r["name"] in second:
-            r["T_gt_open3d"] = second[r["name"]]
         judged = _judge(r, "byoc", "refined")
         if judged is None or r["name"] not in fpfh or (checked and not determined(r)):
             continue
@@ -671,21 +675,19 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("floor-table")
     t.add_argument("paths", type=Path, nargs="+")
     args = parser.parse_args(argv)
+    part = tuple(int(x) for x in getattr(args, "part", "1/1").split("/"))
+    if args.command in ("floor", "check-truth") and args.out.exists():  # never write over it
+        parser.error(f"--out {args.out}: exists; give a new file")
     if args.command == "collect":
-        part = tuple(int(x) for x in args.part.split("/"))
         collect(args.out, part, args.groups, args.refine, args.truth_from)
     elif args.command == "floor":
-        if args.out.exists():  # never write over a collection
-            parser.error(f"--out {args.out}: exists; give a new file")
-        floor_collect(args.out, tuple(int(x) for x in args.part.split("/")))
+        floor_collect(args.out, part)
     elif args.command == "floor-table":
         floor_table(args.paths)
     elif args.command == "agreement":
         agreement(args.paths, args.coarse, args.checked)
     elif args.command == "check-truth":
-        if args.out.exists():  # never write over a file
-            parser.error(f"--out {args.out}: exists; give a new file")
-        check_truth(args.paths, args.out, tuple(int(x) for x in args.part.split("/")))
+        check_truth(args.paths, args.out, part)
     else:
         fit(args.paths, args.truth, args.checked)
     return 0
