@@ -9,8 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.neighbors import CellIndex, nearest_candidates
-from byoc_cli.geometry.sampling import _index_around, cloud_radius, nearest_spacing
+from byoc_cli.geometry.sampling import SPACING_NEIGHBOURS, cloud_radius, nearest_spacing
 
 
 def _brute_spacing(points: np.ndarray) -> float:
@@ -31,18 +30,21 @@ def test_spacing_equals_brute_force_when_every_point_is_a_query():
     assert got == pytest.approx(_brute_spacing(pts), rel=1e-9)
 
 
-@pytest.mark.parametrize("cell", [0.005, 0.02, 0.08])
-def test_the_index_around_the_queries_finds_what_the_whole_index_finds(cell):
-    pts = torch.from_numpy(_surface(3000, 4))
-    queries = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(0))[:50]]
-    whole, part = CellIndex(pts, cell), _index_around(pts, queries, cell)
-    assert len(part.points) < len(pts) or cell == 0.08
-    near_whole = nearest_candidates(whole, queries, k=16)
-    near_part = nearest_candidates(part, queries, k=16)
-    # the same points in the same order (indices differ: the part holds fewer)
-    assert torch.equal(near_whole >= 0, near_part >= 0)
-    found = near_whole >= 0
-    assert torch.equal(whole.points[near_whole[found]], part.points[near_part[found]])
+def test_many_copies_of_a_point_are_not_the_spacing():
+    # a scanner's repeated returns at its sensor: more copies than the neighbours asked
+    pts = _surface(3000, 4)
+    copies = np.concatenate([pts, np.repeat(pts[:5], 3 * SPACING_NEIGHBOURS, axis=0)])
+    every = nearest_spacing(torch.from_numpy(copies), samples=len(copies))
+    d = np.linalg.norm(copies[:, None] - pts[None], axis=2)
+    d[d <= 0] = np.inf
+    assert every == pytest.approx(float(np.median(d.min(axis=1))), rel=1e-9)
+
+
+def test_distinct_points_repeated_many_times():
+    ten = _surface(10, 5)
+    repeated = torch.from_numpy(np.repeat(ten, 2000, axis=0))
+    assert nearest_spacing(repeated) == pytest.approx(_brute_spacing(ten), rel=0.5)
+    assert nearest_spacing(repeated) > 0
 
 
 def test_spacing_of_a_grid_is_its_step():

@@ -132,7 +132,7 @@ def measure(points: torch.Tensor, label: str = "cloud") -> CloudScale:
             "read the scan's scale (or give --voxel-size)"
         )
     radius = cloud_radius(points)
-    return CloudScale(len(points), nearest_spacing(points, radius=radius), radius, label)
+    return CloudScale(len(points), nearest_spacing(points), radius, label)
 
 
 def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoice:
