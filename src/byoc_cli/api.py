@@ -211,7 +211,7 @@ class Registrar:
             if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == voxel:
                 self._refine_clouds.move_to_end(key)
                 return hit[1]
-            prepared = RefineCloud(feats.cloud, voxel)
+            prepared = RefineCloud(_local_frame(feats.cloud).local(feats.cloud), voxel)
             self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: id stays its
             while len(self._refine_clouds) > self.REFINE_CACHE:
                 self._refine_clouds.popitem(last=False)
@@ -354,21 +354,32 @@ class Registrar:
         all of them (``Features.cloud``)."""
         import torch
 
+        from byoc_cli.pipeline.scale import check_radius
+
         voxel = voxel_size or self.voxel_size
+        frame = _local_frame(points)
+        check_radius(frame.radius, label)
         subset = _keep_subset(len(points), keep)
+        if frame.inside is not None:  # strays left out
+            subset = (
+                np.flatnonzero(frame.inside) if subset is None else subset[frame.inside[subset]]
+            )
         used = points if subset is None else points[subset]
+        used = used - frame.origin if frame.moved else used
         got = self.extractor(torch.from_numpy(used), label=label, voxel_size=voxel)
         index = got.point_index.numpy()
+        index = index if subset is None else subset[index]
         return Features(
-            points=got.points.numpy(),
+            points=points[index],
             feats=got.feats.numpy(),
-            point_index=index if subset is None else subset[index],
+            point_index=index,
             voxel_size=voxel,
             refine_voxel=refine_voxel,
             scale=1.0 if scale is None else float(scale),
             features=self.features,
             weights_sha256=self.weights_sha256,
             cloud=points,
+            origin=frame.origin if frame.moved else None,
         )
 
     def match(
@@ -415,7 +426,7 @@ class Registrar:
 
         def cloud(f: Features) -> CloudFeatures:
             return CloudFeatures(
-                torch.from_numpy(f.points),
+                torch.from_numpy(f.points if f.origin is None else f.points - f.origin),
                 torch.from_numpy(f.feats),
                 torch.from_numpy(f.point_index),
                 torch.empty(0, 3, dtype=torch.int64),  # voxel coordinates: unused by matching
@@ -435,10 +446,10 @@ class Registrar:
             refine_voxel=src.refine_voxel,
             parallel=parallel,
         )
-        T = result.T_tgt_src.clone()
+        T = _about_origins(result.T_tgt_src.numpy(), src.origin, tgt.origin)
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s
         registration = Registration(
-            T_tgt_src=T.numpy(),
+            T_tgt_src=T,
             confidence=result.confidence,
             num_inliers=result.num_inliers,
             num_correspondences=result.num_correspondences,
@@ -705,6 +716,27 @@ class _Memo:
             raise
         mine.set_result(value)
         return value
+
+
+def _local_frame(points: np.ndarray):
+    """:func:`~byoc_cli.geometry.sampling.local_frame` of ``points (N, 3)``."""
+    from byoc_cli.geometry.sampling import local_frame
+
+    return local_frame(points)
+
+
+def _about_origins(
+    T_local: np.ndarray, origin_src: np.ndarray | None, origin_tgt: np.ndarray | None
+) -> np.ndarray:
+    """``(4, 4)`` float64 the transform in input coordinates of ``T_local (4, 4)``, which
+    maps the source's local points (input minus ``origin_src``) into the target's (input
+    minus ``origin_tgt``; None: zeros): ``x_tgt = R (x_src - o_src) + t + o_tgt``."""
+    T = np.array(T_local, dtype=np.float64)
+    if origin_src is not None:
+        T[:3, 3] -= T[:3, :3] @ origin_src
+    if origin_tgt is not None:
+        T[:3, 3] += origin_tgt
+    return T
 
 
 def _keep_subset(n: int, keep: float) -> np.ndarray | None:

@@ -35,6 +35,9 @@ class Features(NamedTuple):
             not the array.
         refine_voxel: the voxel the refinement levels scale with (None: ``voxel_size``);
             the auto voxel keeps it below a ``voxel_size`` raised for sparse clouds.
+        origin: ``(3,)`` float64 the cloud is registered about
+            (:func:`byoc_cli.geometry.sampling.local_frame`: its median point when it lies
+            far from the origin, else zeros); None: zeros.
     """
 
     points: np.ndarray
@@ -46,6 +49,7 @@ class Features(NamedTuple):
     weights_sha256: str | None
     cloud: np.ndarray | None = None
     refine_voxel: float | None = None
+    origin: np.ndarray | None = None
 
 
 class Registration(NamedTuple):

@@ -536,7 +536,7 @@ def test_a_cloud_too_wide_for_its_voxels_names_the_file(pair):
     for features, voxel in (("byoc", "0.025"), ("fpfh", "0.05")):
         args = ("--features", features, "--scale", "1e6", "--voxel-size", voxel)
         line = _one_error_line(_run("register", *pair, *args))
-        assert str(pair[0]) in line and "spans too many voxels" in line, line
+        assert str(pair[0]) in line and "voxel size is too small for this cloud" in line, line
 
 
 def test_a_first_frame_without_points_names_its_depth_file(shared_data):

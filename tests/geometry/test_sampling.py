@@ -9,7 +9,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.sampling import SPACING_NEIGHBOURS, cloud_radius, nearest_spacing
+from byoc_cli.geometry.sampling import (
+    SPACING_NEIGHBOURS,
+    cloud_radius,
+    local_frame,
+    nearest_spacing,
+)
 
 
 def _brute_spacing(points: np.ndarray) -> float:
@@ -89,3 +94,48 @@ def test_degenerate_sizes():
     assert cloud_radius(torch.zeros(1, 3)) == 0.0
     with pytest.raises(ShapeError):
         nearest_spacing(torch.zeros(4, 2))
+
+
+def test_a_cloud_near_the_origin_is_registered_where_it_is():
+    pts = _surface(2000, 6, size=3.0) + 5.0
+    frame = local_frame(pts)
+    assert not frame.moved and frame.inside is None and frame.strays == 0
+    assert frame.local(pts) is pts
+
+
+@pytest.mark.parametrize("offset", [1e4, 1e6, 1e7, 1e9])
+def test_a_far_cloud_is_registered_about_its_median_point_without_rounding(offset):
+    pts = _surface(2000, 7, size=3.0)
+    far = pts + np.array([offset, -2 * offset, 0.5 * offset])
+    frame = local_frame(far)
+    assert frame.moved
+    np.testing.assert_array_equal(frame.origin, np.median(far, axis=0))
+    local = frame.local(far)
+    # the median is a point of the cloud's box: subtracting it is exact (Sterbenz)
+    np.testing.assert_array_equal(local + frame.origin, far)
+    assert np.abs(local).max() < 10
+
+
+def test_far_strays_are_left_out_and_the_rest_kept_in_order():
+    pts = _surface(2000, 8)
+    strays = np.array([[1e6, 0, 0], [0, -1e30, 0], [np.finfo(np.float64).max] * 3])
+    mixed = np.concatenate([pts[:1000], strays, pts[1000:]])
+    frame = local_frame(mixed)
+    assert frame.strays == 3 and not frame.moved
+    np.testing.assert_array_equal(frame.local(mixed), pts)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(1e-6, 1e6), st.integers(0, 30))
+def test_the_strays_do_not_depend_on_the_unit(factor, seed):
+    pts = _surface(500, seed)
+    with_far = np.concatenate([pts, [[3e3, 0, 0]]]) * factor
+    frame = local_frame(with_far)
+    assert frame.strays == 1
+    assert frame.radius == pytest.approx(cloud_radius(torch.from_numpy(with_far)), rel=1e-9)
+
+
+def test_no_stray_without_a_radius():
+    pts = np.concatenate([np.zeros((10, 3)), [[1.0, 0, 0]]])  # most points in one place
+    frame = local_frame(pts)
+    assert frame.radius == 0 and frame.inside is None and not frame.moved

@@ -8,6 +8,8 @@ of the points. Shapes: points ``(N, 3)``, float; results are plain floats.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import torch
 
@@ -74,3 +76,62 @@ def nearest_spacing(
             return 0.0
         dist[stuck] = KDTree(distinct).query(asked[stuck], k=2)[0][:, 1]
     return float(np.median(dist))
+
+
+#: a cloud whose median point lies farther than this many radii from the origin is
+#: registered about its median point (georeferenced scans: hundreds of kilometres away)
+FAR_RADII = 100.0
+#: points farther than this many radii from the median point are strays, left out of the
+#: registration (a spinning LiDAR's farthest returns lie within about 20 radii)
+STRAY_RADII = 1000.0
+
+
+class LocalFrame(NamedTuple):
+    """Where a cloud is registered: its points minus ``origin``, the strays left out.
+
+    Attributes:
+        origin: ``(3,)`` float64 subtracted from the input coordinates (the median point of
+            a cloud far from the origin, else zeros: nothing moves).
+        inside: ``(N,)`` bool, the points within :data:`STRAY_RADII` radii of the median
+            point; None when that is all of them.
+        radius: :func:`cloud_radius` of the points.
+    """
+
+    origin: np.ndarray
+    inside: np.ndarray | None
+    radius: float
+
+    @property
+    def strays(self) -> int:
+        """Points left out as strays."""
+        return 0 if self.inside is None else int((~self.inside).sum())
+
+    @property
+    def moved(self) -> bool:
+        """Whether the cloud is registered about another origin than its own."""
+        return bool(self.origin.any())
+
+    def local(self, points: np.ndarray) -> np.ndarray:
+        """``(K, 3)`` float64 local coordinates of the inside points of ``points (N, 3)``
+        (the array itself when nothing moves and nothing is left out). The median point is
+        a point of the cloud's box: near points subtract without rounding (Sterbenz)."""
+        kept = points if self.inside is None else points[self.inside]
+        return kept - self.origin if self.moved else kept
+
+
+def local_frame(points: np.ndarray) -> LocalFrame:
+    """The :class:`LocalFrame` of ``points (N, 3)`` float64 (finite). O(N)."""
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ShapeError(f"points must be (N, 3), got {tuple(points.shape)}")
+    zero = np.zeros(3)
+    if len(points) < 2:
+        return LocalFrame(zero, None, 0.0)
+    centre = np.median(points, axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        distance = np.linalg.norm(points - centre, axis=1)
+    radius = float(np.median(distance))
+    if not radius > 0 or not np.isfinite(radius):
+        return LocalFrame(zero, None, radius)
+    origin = centre if np.abs(centre).max() > FAR_RADII * radius else zero
+    inside = distance <= STRAY_RADII * radius
+    return LocalFrame(origin, None if inside.all() else inside, radius)

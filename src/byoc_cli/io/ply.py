@@ -198,13 +198,27 @@ def _as_uint8_colors(colors: np.ndarray, n: int) -> np.ndarray:
     raise ShapeError(f"colors must be uint8 (or integers in 0..255), got {colors.dtype}")
 
 
+#: coordinates this far from the origin are written as ``double``: float32 keeps steps of
+#: 1 mm there (in metres), coarser farther out (0.5 m at a UTM northing of 5e6)
+FLOAT32_LIMIT = 1e4
+
+
+def coordinate_dtype(points: np.ndarray) -> np.dtype:
+    """``float64`` when any coordinate of ``points (N, 3)`` reaches :data:`FLOAT32_LIMIT`
+    in magnitude (or is not finite), else ``float32``."""
+    points = np.asarray(points)
+    if points.size and not np.abs(points).max() < FLOAT32_LIMIT:
+        return np.dtype(np.float64)
+    return np.dtype(np.float32)
+
+
 def write_ply(
     path: str | os.PathLike[str] | None,
     points: np.ndarray,
     colors: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     *,
-    dtype: type[np.floating] | str = np.float32,
+    dtype: type[np.floating] | str | None = None,
 ) -> bytes | None:
     """Write a binary little-endian PLY file atomically (``path`` None: return its bytes).
 
@@ -217,13 +231,14 @@ def write_ply(
         points: ``(N, 3)`` coordinates (any real dtype; N may be 0).
         colors: optional ``(N, 3)`` uint8 (or integers in 0..255).
         normals: optional ``(N, 3)`` real.
-        dtype: ``np.float32`` (default) or ``np.float64`` for coordinates and normals.
+        dtype: ``np.float32`` or ``np.float64`` for coordinates and normals; None:
+            :func:`coordinate_dtype` of ``points`` (``double`` for georeferenced points).
 
     Raises:
         ShapeError: wrong shapes, or a dtype other than float32/float64, or bad colors.
         InputError: the file cannot be written (missing folder, permission denied).
     """
-    coord = np.dtype(dtype)
+    coord = np.dtype(coordinate_dtype(points) if dtype is None else dtype)
     if coord not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise ShapeError(f"dtype must be float32 or float64, got {coord}")
     points = np.asarray(points)

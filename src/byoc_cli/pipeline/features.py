@@ -60,10 +60,11 @@ def _voxelize_checked(points: torch.Tensor, voxel_size: float, label: str):
     try:
         grid = voxelize(points, voxel_size)
     except ShapeError as exc:  # more voxels across than the keys hold
-        extent = float((points.max(dim=0).values - points.min(dim=0).values).max())
+        reach = float(points.abs().max()) / voxel_size
         raise RegistrationError(
-            f"{label}: the cloud ({extent:.3g} m across) spans too many voxels of "
-            f"{voxel_size:g} m; is the unit (--scale) right?"
+            f"{label}: points lie {reach:.3g} voxels of {voxel_size:g} from the origin of "
+            "their cloud (at most 1048576): the voxel size is too small for this cloud, or "
+            "the unit is wrong (--voxel-size, --scale)"
         ) from exc
     kept = grid.point_index.numel()
     if kept < MIN_POINTS:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from byoc_cli.errors import RegistrationError
@@ -123,16 +124,62 @@ def measure(points: torch.Tensor, label: str = "cloud") -> CloudScale:
 
     Raises:
         RegistrationError: fewer than :data:`MIN_POINTS` distinct points (no scale can be
-            read from them), message starting with ``label``.
+            read from them), or points spread too wide for any unit
+            (:func:`check_radius`); the message starts with ``label``.
     """
     distinct = len(torch.unique(points, dim=0)) if len(points) < 10 * MIN_POINTS else len(points)
     if distinct < MIN_POINTS:
-        raise RegistrationError(
-            f"{label}: only {distinct} distinct point(s); at least {MIN_POINTS} are needed to "
-            "read the scan's scale (or give --voxel-size)"
-        )
+        raise RegistrationError(_too_few(points, distinct, label))
     radius = cloud_radius(points)
-    return CloudScale(len(points), nearest_spacing(points), radius, label)
+    check_radius(radius, label)
+    spacing = nearest_spacing(points)
+    if radius <= 0 or spacing <= 0 or radius < 2 * spacing:  # no extent: a few points repeated?
+        distinct = len(np.unique(points.numpy(), axis=0))
+        if distinct < MIN_POINTS:
+            raise RegistrationError(_too_few(points, distinct, label))
+    return CloudScale(len(points), spacing, radius, label)
+
+
+#: float32 coordinates this far from the origin lie 1 cm or more apart
+FLOAT32_FAR = 1e5
+
+
+def _too_few(points: torch.Tensor, distinct: int, label: str) -> str:
+    """The message for a cloud of ``distinct`` distinct points, naming float32 rounding
+    where the coordinates lie far enough from the origin for it to merge points."""
+    why = ""
+    offset = float(points.abs().max()) if len(points) else 0.0
+    pts = points.to(torch.float64)
+    single = offset < 3e38 and bool((pts.to(torch.float32).to(torch.float64) == pts).all())
+    if len(points) > distinct and single and offset >= FLOAT32_FAR:
+        step = float(np.spacing(np.float32(offset)))
+        why = (
+            f" (its coordinates reach {offset:.3g}, where float32 values lie {step:.3g} apart: "
+            "store them as double, or about a local origin)"
+        )
+    return (
+        f"{label}: only {distinct} distinct point(s){why}; at least {MIN_POINTS} are needed to "
+        "read the scan's scale (or give --voxel-size)"
+    )
+
+
+#: the largest radius (median distance from the median point) of a cloud in any unit: a
+#: 100 m scan in nanometres has 1e11; past about 1e19 float32 squares overflow
+MAX_RADIUS = 1e12
+
+
+def check_radius(radius: float, label: str) -> None:
+    """Refuse a cloud whose ``radius`` exceeds :data:`MAX_RADIUS` (or is not finite).
+
+    Raises:
+        RegistrationError: naming ``label`` and the radius.
+    """
+    if not radius <= MAX_RADIUS:
+        raise RegistrationError(
+            f"{label}: the points spread {radius:.3g} units from their median point, more than "
+            f"{MAX_RADIUS:g} (no scan is that large in any unit): is the file's scale right? "
+            "(--scale multiplies the coordinates)"
+        )
 
 
 def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoice:
