@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -265,3 +267,143 @@ def test_agreement_counts_learned_results_against_fpfh_ones(tmp_path):
     assert result.returncode == 0, result.stderr
     rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines()[2:]}
     assert rows["g"] == ["1/1", "1/0", "0/1"] and rows["all"] == rows["g"]
+
+
+def _scan_sim():
+    """benchmarks/scan_sim.py as a module."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import scan_sim
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return scan_sim
+
+
+def test_a_simulated_street_pair_lies_on_its_scene_and_its_truth_maps_a_onto_b():
+    import numpy as np
+
+    o3d = pytest.importorskip("open3d")
+    from scipy.spatial import cKDTree
+
+    sim = _scan_sim()
+    street = sim.simulate_street(2000)
+    assert street.rings == 16
+    for points in (street.src, street.tgt):
+        assert abs(len(points) - 2000) < 200  # near what was asked
+    scene = sim.raycasting_scene(street.mesh)
+
+    def off_scene(points, T_world):
+        world = sim.apply(T_world, points).astype(np.float32)
+        return scene.compute_distance(o3d.core.Tensor(world)).numpy()
+
+    # each scan in its sensor frame lies on the scene (1.5 cm range noise) ...
+    for points, T_world in ((street.src, street.T_world_src), (street.tgt, street.T_world_tgt)):
+        assert np.percentile(off_scene(points, T_world), 95) < 0.05
+    # ... and so does A taken into B's frame by T_gt, then into the scene by B's pose
+    assert np.percentile(off_scene(street.src, street.T_world_tgt @ street.T_gt), 95) < 0.05
+    # A by T_gt meets B's surface, seen densely and without noise from B's sensor
+    dense = sim.scan(scene, street.T_world_tgt, sim.lidar_directions(128, 4096),
+                     np.random.default_rng(0), 0.0, 100.0)  # fmt: skip
+    tree = cKDTree(dense)
+    near = np.median(tree.query(sim.apply(street.T_gt, street.src))[0])
+    off = sim.rigid(sim.rotation_xyz(0, 0, 2), (0.5, 0, 0)) @ street.T_gt
+    assert near < 0.06 < 0.1 < np.median(tree.query(sim.apply(off, street.src))[0])
+    # 4 m ahead, 12 deg turned: T_gt = inv(motion)
+    assert np.degrees(np.arccos((np.trace(street.T_gt[:3, :3]) - 1) / 2)) == pytest.approx(12)
+    assert np.linalg.norm(street.T_gt[:3, 3]) == pytest.approx(4)
+
+
+def test_simulated_street_pairs_are_the_same_for_a_seed_and_sized_as_asked():
+    import numpy as np
+
+    pytest.importorskip("open3d")
+    sim = _scan_sim()
+    a, b = sim.street_pair(5000, seed=3), sim.street_pair(5000, seed=3)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    other = sim.street_pair(5000, seed=4)
+    assert other[0].shape != a[0].shape or not np.array_equal(other[0], a[0])
+    for n, rings in ((12000, 16), (40000, 32)):
+        street = sim.simulate_street(n)
+        assert street.rings == rings
+        for points in (street.src, street.tgt):
+            assert len(points) == pytest.approx(n, rel=0.05)
+        assert len(sim.street_pair(n, rings=64)[0]) == pytest.approx(n, rel=0.05)
+
+
+def test_georeferenced_and_scaled_pairs_keep_their_truth():
+    import numpy as np
+
+    sim = _scan_sim()
+    rng = np.random.default_rng(0)
+    src = rng.uniform(-50, 50, (100, 3))
+    T = sim.rigid(sim.rotation_xyz(3, -2, 40), (4.0, -1.0, 0.5))
+    tgt = sim.apply(T, src)
+    for offset in ((1e3, 1e3, 0), (4.5e5, 5.2e6, 120), (1e7, 1e7, 0)):
+        s2, t2, T2 = sim.georeferenced(src, tgt, T, offset)
+        np.testing.assert_allclose(s2 - src, np.broadcast_to(offset, src.shape))
+        np.testing.assert_allclose(T2[:3, :3], T[:3, :3])
+        # the conjugated transform maps the moved source onto the moved target
+        np.testing.assert_allclose(sim.apply(T2, s2), t2, atol=1e-9 * max(offset), rtol=0)
+        np.testing.assert_allclose(T2[:3, 3], T[:3, 3] + np.asarray(offset) - T[:3, :3] @ offset)
+    s3, _, T3 = sim.scaled(src, tgt, T, 1e300)
+    np.testing.assert_allclose(sim.apply(T3, s3) / 1e300, tgt, atol=1e-9)
+
+
+def test_scan_sim_writes_hostile_and_georeferenced_pairs_plyfile_reads(tmp_path):
+    import numpy as np
+
+    pytest.importorskip("open3d")
+    from plyfile import PlyData
+
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "scan_sim.py"), "--out", str(tmp_path),
+         "--sets", "geo", "hostile", "--sizes", "3000"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert "street-3k" not in names  # only the variants were asked for
+    # float64 where float32 would lose more than a millionth of the cloud's size
+    expected = {"geo-1e3": "f4", "geo-1e5": "f8", "geo-utm": "f8", "geo-1e6": "f8",
+                "geo-1e7": "f8", "stray-1e6": "f8", "stray-1e30": "f8", "dup-added": "f4",
+                "dup-only": "f4", "scale-1e30": "f4", "scale-1e300": "f8",
+                "f32-1e9": "f4"}  # fmt: skip
+    assert names == sorted(f"street-3k-{v}" for v in expected)
+    for variant, dtype in expected.items():
+        folder = tmp_path / f"street-3k-{variant}"
+        info = json.loads((folder / "info.json").read_text())
+        T = np.loadtxt(folder / "T_gt.txt")
+        assert T.shape == (4, 4) and np.all(np.isfinite(T))
+        for name, count in (("source.ply", info["points_src"]), ("target.ply", info["points_tgt"])):
+            vertex = PlyData.read(str(folder / name))["vertex"]
+            assert vertex.count == count
+            assert vertex["x"].dtype == np.dtype(dtype), (variant, name)
+            points = np.stack([vertex[a] for a in "xyz"], axis=1).astype(np.float64)
+            assert np.all(np.isfinite(points)), variant
+    dup = PlyData.read(str(tmp_path / "street-3k-dup-only" / "source.ply"))["vertex"]
+    assert len(np.unique(np.stack([dup[a] for a in "xyz"], axis=1), axis=0)) == 10
+    stray = PlyData.read(str(tmp_path / "street-3k-stray-1e30" / "target.ply"))["vertex"]
+    far = np.stack([stray[a] for a in "xyz"], axis=1)[-1]
+    assert np.linalg.norm(far) == pytest.approx(1e30)
+
+
+@pytest.mark.slow  # 5-10 s: the TSDF fusion of 50 frames
+@pytest.mark.realdata
+def test_scan_sim_object_pair_is_two_views_of_a_small_object(shared_data, tmp_path):
+    import numpy as np
+
+    pytest.importorskip("open3d")
+    from scipy.spatial import cKDTree
+
+    sim = _scan_sim()
+    sequence = shared_data / "rgbd" / "realsense_tabletop"
+    src, tgt, T = sim.object_pair(45.0, spacing=1e-3, sequence=sequence, cache=tmp_path)
+    assert list(tmp_path.glob("*.ply"))  # the fused mesh is cached
+    assert np.degrees(np.arccos((np.trace(T[:3, :3]) - 1) / 2)) == pytest.approx(45, abs=0.5)
+    for points in (src, tgt):
+        assert len(points) > 5000
+        assert 0.1 < np.max(np.ptp(points, axis=0)) < 0.3  # 10-30 cm across
+    moved = sim.apply(T, src)
+    near = cKDTree(tgt).query(moved)[0]
+    assert np.mean(near < 0.002) > 0.3  # the overlap meets within 2 mm
