@@ -407,3 +407,81 @@ def test_scan_sim_object_pair_is_two_views_of_a_small_object(shared_data, tmp_pa
     moved = sim.apply(T, src)
     near = cKDTree(tgt).query(moved)[0]
     assert np.mean(near < 0.002) > 0.3  # the overlap meets within 2 mm
+
+
+def _scaling(*args: str, timeout: float = 120, cwd: Path | None = None):
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "scaling.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=cwd,
+    )
+
+
+def test_scaling_refuses_an_unknown_method_or_a_pair_folder_without_its_files(tmp_path):
+    result = _scaling("--methods", "o3d", "magic", "--data", str(tmp_path / "pairs"))
+    assert result.returncode == 2 and "--methods 'magic': not one of" in result.stderr
+    result = _scaling("--sizes", "--pairs", str(tmp_path))
+    assert result.returncode == 2 and f"--pairs {tmp_path}: no source.ply" in result.stderr
+    assert not (tmp_path / "pairs").exists()  # nothing was generated
+
+
+def _scaling_module():
+    """benchmarks/scaling.py as a module."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import scaling
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return scaling
+
+
+def test_scaling_fits_the_slope_over_the_sizes_that_finished():
+    slopes = _scaling_module().slopes
+    rows = [
+        {"method": "m", "kind": "street", "points": n, "wall_s": 2.0 * n**1.5, "status": "ok"}
+        for n in (1e4, 1e5, 1e6)
+    ]
+    rows.append({"method": "m", "kind": "street", "points": 1e7, "wall_s": 600.0,
+                 "status": "timeout"})  # fmt: skip
+    rows.append({"method": "n", "kind": "street", "points": 1e4, "wall_s": 1.0, "status": "ok"})
+    rows.append({"method": "n", "kind": "street", "variant": "geo-1e5", "points": 1e5,
+                 "wall_s": 1.0, "status": "ok"})  # fmt: skip
+    fitted = slopes(rows)
+    assert abs(fitted["m"] - 1.5) < 1e-9 and fitted["n"] is None
+
+
+def test_scaling_measures_the_translation_error_where_the_points_are():
+    import numpy as np
+
+    scaling, sim = _scaling_module(), _scan_sim()
+    T_gt = sim.rigid(sim.rotation_xyz(0, 0, 12), (4.0, 0.0, 0.0))
+    T = sim.rigid(sim.rotation_xyz(0, 0, 13), (4.0, 0.0, 0.0))  # 1 deg off
+    _, _, T_geo = sim.georeferenced(np.zeros((1, 3)), np.zeros((1, 3)), T, (1e6, 0, 0))
+    _, _, T_gt_geo = sim.georeferenced(np.zeros((1, 3)), np.zeros((1, 3)), T_gt, (1e6, 0, 0))
+    rot, at_origin = scaling.errors(T_geo, T_gt_geo)
+    assert abs(rot - 1) < 1e-6 and at_origin > 1e4  # 1 deg at 1000 km
+    # at the moved points, the same errors as before the move (rounding of 1e6 m aside)
+    rot_at, trans_at = scaling.errors(T_geo, T_gt_geo, (1e6, 0, 0))
+    assert abs(rot_at - 1) < 1e-6 and trans_at < 1e-9 and scaling.errors(T, T_gt)[1] == 0
+
+
+def test_scaling_runs_open3d_on_the_smallest_street_and_prints_its_table(tmp_path):
+    import numpy as np
+
+    pytest.importorskip("open3d")
+    report = tmp_path / "scaling.json"
+    # a relative --data: the children run elsewhere and still find the pair
+    args = ["--sizes", "10000", "--methods", "o3d", "--data", "pairs", "--timeout", "120"]
+    result = _scaling(*args, "--json", str(report), timeout=300, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("| pair | points | method | wall s | CPU s | peak MB | exit |")
+    cells = [c.strip() for c in lines[2].split("|")[1:-1]]
+    assert cells[0] == "street-10k" and cells[2] == "o3d" and cells[6:8] == ["0", "ok"]
+    assert "o3d: -" in result.stdout  # one size: no slope
+    row = json.loads(report.read_text())["rows"][0]
+    assert row["peak_mb"] > 0 and row["cpu_s"] > 0
+    assert row["rot_deg"] < 5 and row["trans"] < 8  # Open3D at 0.3 m registers the street
+    assert np.loadtxt(tmp_path / "pairs" / "street-10k" / "T_gt.txt").shape == (4, 4)
