@@ -485,3 +485,17 @@ def test_scaling_runs_open3d_on_the_smallest_street_and_prints_its_table(tmp_pat
     assert row["peak_mb"] > 0 and row["cpu_s"] > 0
     assert row["rot_deg"] < 5 and row["trans"] < 8  # Open3D at 0.3 m registers the street
     assert np.loadtxt(tmp_path / "pairs" / "street-10k" / "T_gt.txt").shape == (4, 4)
+
+
+def test_kdtree_times_each_tree_and_the_former_grid_on_the_same_clouds(shared_data):
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "kdtree.py"), "--repeat", "1", "--sizes", "2000"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    rows = run.stdout.strip().splitlines()
+    assert "pykdtree" in rows[0] and "cell grid (before)" in rows[0]
+    assert [r.split()[0] for r in rows[1:]] == ["demo", "lidar", "lidar"]
+    assert all(r.count(" s ") == 4 for r in rows[1:])
