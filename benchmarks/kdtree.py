@@ -74,6 +74,8 @@ def cell_grid(points: np.ndarray) -> None:
     pts = torch.from_numpy(points)
     asked = torch.from_numpy(_queries(points))
     radius = float(np.median(np.linalg.norm(points - np.median(points, axis=0), axis=1)))
+    if radius <= 0:  # most points in one place: the former measure gave up (spacing 0)
+        return
     cell = 2.0 * radius / np.sqrt(len(points))
     for _ in range(24):
         index = CellIndex(pts, cell)
