@@ -489,7 +489,14 @@ def test_scaling_runs_open3d_on_the_smallest_street_and_prints_its_table(tmp_pat
 
 def test_kdtree_times_each_tree_and_the_former_grid_on_the_same_clouds(shared_data):
     run = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "kdtree.py"), "--repeat", "1", "--sizes", "2000"],
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "kdtree.py"),
+            "--repeat",
+            "1",
+            "--sizes",
+            "2000",
+        ],
         capture_output=True,
         text=True,
         timeout=300,
