@@ -78,7 +78,7 @@ def cell_grid(points: np.ndarray) -> None:
         return
     cell = 2.0 * radius / np.sqrt(len(points))
     for _ in range(24):
-        index = CellIndex(pts, cell)
+        index = CellIndex(pts, cell, max_per_cell=None)
         near = nearest_candidates(index, asked, k=16)
         d = torch.linalg.vector_norm(index.points[near.clamp_min(0)] - asked[:, None], dim=2)
         d = d.masked_fill((near < 0) | (d <= 0), float("inf")).min(dim=1).values

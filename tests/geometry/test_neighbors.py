@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from byoc_cli.geometry.neighbors import (
     CELL_LIMIT,
     DENSE_CELLS,
+    MAX_PER_CELL,
     CellIndex,
     DenseCells,
     Nearest,
@@ -297,3 +298,10 @@ def test_smallest_eigenvector_of_isotropic_and_double_roots():
     v = smallest_eigenvector(A)
     assert torch.allclose(v.norm(dim=1), torch.ones(3, dtype=torch.float64))
     assert abs(float(v[1, 2])) < 1e-9  # in the plane of the double root
+
+
+def test_a_cell_index_refuses_a_cell_fuller_than_its_bound():
+    pts = torch.cat([torch.zeros(MAX_PER_CELL + 1, 3), torch.rand(100, 3, dtype=torch.float64)])
+    with pytest.raises(ValueError, match="k-d tree"):
+        CellIndex(pts.double(), 0.1)
+    assert CellIndex(pts.double(), 0.1, max_per_cell=None).max_count == MAX_PER_CELL + 1

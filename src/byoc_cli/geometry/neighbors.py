@@ -182,6 +182,13 @@ def _linear(cells: torch.Tensor, dims: torch.Tensor) -> torch.Tensor:
     return (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
 
 
+#: most points one cell of a :class:`CellIndex` may hold: its searches size every query by
+#: the fullest cell, so it is for voxel averages (one point per cell; the refinement's
+#: levels), not for raw scans (a spinning LiDAR puts thousands of returns into one cell
+#: near its sensor: a k-d tree answers those, :mod:`byoc_cli.geometry.sampling`)
+MAX_PER_CELL = 64
+
+
 class CellIndex:
     """The points of a cloud by cell: sorted keys and, per key, the points in that cell.
 
@@ -194,6 +201,10 @@ class CellIndex:
             are the same).
         origin: ``(3,)`` the grid's origin, a cell corner at or below every point (default:
             :func:`grid_origin` of ``points``): an index of part of a cloud on the cloud's grid.
+        max_per_cell: refuse clouds with a cell fuller than this (None: any).
+
+    Raises:
+        ValueError: a cell holds more than ``max_per_cell`` points.
     """
 
     def __init__(
@@ -202,6 +213,7 @@ class CellIndex:
         size: float,
         dense_reach: int | None = None,
         origin: torch.Tensor | None = None,
+        max_per_cell: int | None = MAX_PER_CELL,
     ) -> None:
         self.points = points
         self.size = float(size)
@@ -220,6 +232,11 @@ class CellIndex:
         self.first = self.order[self.start]  # (C,) the first point of each cell
         self.count = counts  # (C,)
         self.max_count = int(counts.max()) if len(counts) else 0
+        if max_per_cell is not None and self.max_count > max_per_cell:
+            raise ValueError(
+                f"a cell of {size:g} holds {self.max_count} points (at most {max_per_cell}): "
+                "index voxel averages, or search with a k-d tree"
+            )
         self.dense: DenseCells | None = None
         if dense_reach is not None and len(self.keys):
             # one point per cell: the table holds the point itself (none: the point at
