@@ -23,9 +23,10 @@ Method names (``--method``):
 Feature methods use a seeded random subset of ``max_points`` kept points per cloud
 (``--num-samples``). A registration that raises (e.g. fewer than 3 correspondences) returns the
 identity and is counted as failed.
-"""
 
-from __future__ import annotations
+The feature specs of the methods are made in :mod:`byoc_cli.evaluation.method_features`, the
+ICP baselines run in :mod:`byoc_cli.evaluation.icp`; their public names are re-exported here.
+"""
 
 import dataclasses
 from collections.abc import Sequence
@@ -36,8 +37,23 @@ from typing import Any, NamedTuple
 import torch
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.geometry import voxelize
-from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
+from byoc_cli.evaluation.icp import (
+    ICP_MAX_DISTANCE,
+    ICP_MAX_ITERATION,
+    ICP_VOXEL_SIZE,
+    icp_points,
+    open3d_icp,
+)
+from byoc_cli.evaluation.method_features import (
+    DEFAULT_ARCH,
+    FeatureSpec,
+    byoc_specs,
+    feature_specs,
+    fpfh_spec,
+    random_spec,
+    weights_labels,
+)
+from byoc_cli.pipeline.features import CloudFeatures
 from byoc_cli.pipeline.recipe import PAPER, PRESETS, RegistrationRecipe
 from byoc_cli.pipeline.register import (
     RegisterConfig,
@@ -74,14 +90,6 @@ METHOD_NAMES = (
 )
 #: FPFH voxel size (m): the fpfh recipe's, as ``byoc register --features fpfh``.
 FPFH_VOXEL_SIZE = PRESETS["fpfh"].features.reference_voxel
-#: ICP input voxel size (m).
-ICP_VOXEL_SIZE = 0.025
-#: ICP's largest correspondence distance (m).
-ICP_MAX_DISTANCE = 0.10
-#: ICP iterations at most.
-ICP_MAX_ITERATION = 50
-#: Architecture of the random encoder used for ``byoc`` without weights.
-DEFAULT_ARCH = "compact"
 
 #: the recipe of each feature method (its matching, fit and refinement; ``max_points`` is
 #: the run's)
@@ -92,79 +100,12 @@ RECIPES: dict[str, RegistrationRecipe] = {
 }
 
 
-def open3d_icp(
-    points_src: torch.Tensor,
-    points_tgt: torch.Tensor,
-    T_init: torch.Tensor,
-    max_distance: float,
-    *,
-    point_to_plane: bool = True,
-    max_iteration: int = ICP_MAX_ITERATION,
-) -> torch.Tensor:
-    """Open3D's ICP from ``T_init``, the classical baselines ``icp-point`` and ``icp-plane``;
-    returns the refined ``T_tgt_src``.
-
-    Args:
-        points_src, points_tgt: ``(N, 3)`` and ``(M, 3)`` points.
-        T_init: ``(4, 4)`` initial ``T_tgt_src``.
-        max_distance: largest correspondence distance, in the units of the points.
-        point_to_plane: point-to-plane (target normals from 30 neighbours within
-            ``2 * max_distance``); False: point-to-point.
-        max_iteration: ICP iterations at most.
-    """
-    from byoc_cli.errors import require_open3d
-
-    o3d = require_open3d()
-    reg = o3d.pipelines.registration
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_src.double().numpy()))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_tgt.double().numpy()))
-    if point_to_plane:
-        tgt.estimate_normals(
-            o3d.geometry.KDTreeSearchParamHybrid(radius=2 * max_distance, max_nn=30)
-        )
-        estimation = reg.TransformationEstimationPointToPlane()
-    else:
-        estimation = reg.TransformationEstimationPointToPoint()
-    out = reg.registration_icp(
-        src,
-        tgt,
-        max_distance,
-        T_init.double().numpy(),
-        estimation,
-        reg.ICPConvergenceCriteria(max_iteration=max_iteration),
-    )
-    return torch.from_numpy(out.transformation.copy()).to(torch.float64)
-
-
 def _config(kind: str, max_points: int) -> RegisterConfig:
     """The settings of feature method ``kind`` with ``max_points`` per cloud (the
     confidence model of the learned features, as before the recipes: the evaluation reads
     no confidence)."""
     recipe = RECIPES[kind].changed(matching__max_points=max_points)
     return dataclasses.replace(register_config(recipe), confidence_model="byoc")
-
-
-@dataclass
-class FeatureSpec:
-    """A feature extractor and its identity (for the cache and the report).
-
-    Attributes:
-        key: short unique label within a run (``byoc``, ``byoc[name]``, ``fpfh``).
-        extractor: computes :class:`CloudFeatures` from ``points (N, 3)``.
-        identity: JSON-able settings that determine the features (extractor name, voxel
-            size, weights hash, radii).
-        info: JSON-able description for the report (weights file, source).
-    """
-
-    key: str
-    extractor: FeatureExtractor
-    identity: dict[str, Any]
-    info: dict[str, Any]
-
-    @property
-    def voxel_size(self) -> float:
-        """The extractor's voxel size (m)."""
-        return float(self.extractor.voxel_size)
 
 
 class MethodOutput(NamedTuple):
@@ -278,12 +219,6 @@ class Method:
             return MethodOutput(eye, True, str(exc))
 
 
-def icp_points(points: torch.Tensor) -> torch.Tensor:
-    """The ICP input: ``points (N, 3)`` voxelised at :data:`ICP_VOXEL_SIZE` (first point)."""
-    grid = voxelize(points, ICP_VOXEL_SIZE)
-    return points[grid.point_index].to(torch.float64)
-
-
 def parse_method_names(values: Sequence[str]) -> list[str]:
     """Split ``values`` on commas and whitespace, check the names, drop repeats (keep order).
 
@@ -300,116 +235,6 @@ def parse_method_names(values: Sequence[str]) -> list[str]:
     if not names:
         raise ValueError(f"no method given (known: {', '.join(METHOD_NAMES)})")
     return names
-
-
-def weights_labels(weights: Sequence[str | Path]) -> list[str]:
-    """Short unique column labels for weights files, in order.
-
-    The file stem where it is unique; else ``folder/stem`` (training writes
-    ``RUN/weights.safetensors``, so runs are told apart by their folder); else
-    ``stem#N`` with N the 1-based position.
-    """
-    paths = [Path(w) for w in weights]
-    stems = [p.stem for p in paths]
-    named = [f"{p.parent.name}/{p.stem}" if p.parent.name else p.stem for p in paths]
-    labels = []
-    for index, stem in enumerate(stems):
-        if stems.count(stem) == 1:
-            labels.append(stem)
-        elif named.count(named[index]) == 1:
-            labels.append(named[index])
-        else:
-            labels.append(f"{stem}#{index + 1}")
-    return labels
-
-
-def _random_spec(seed: int, device: str) -> FeatureSpec:
-    """``byoc-random``: a randomly initialised encoder, asked for by name."""
-    from byoc_cli.pipeline.features import ByocExtractor
-    from byoc_cli.pipeline.weights import init_weights, tensors_sha256
-
-    encoder, meta = init_weights(DEFAULT_ARCH, seed)
-    digest = tensors_sha256(
-        {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}
-    )
-    voxel = float(meta["voxel_size"])
-    return FeatureSpec(
-        key="byoc-random",
-        extractor=ByocExtractor(encoder, voxel, device),
-        identity={
-            "extractor": "byoc",
-            "voxel_size": voxel,
-            "weights": "random-init",
-            "architecture": DEFAULT_ARCH,
-            "tensors_sha256": digest,
-        },
-        info={
-            "source": "random-init",
-            "note": f"a random {DEFAULT_ARCH} encoder seeded with {seed} "
-            "(random geometric features, not trained ones)",
-            "architecture": DEFAULT_ARCH,
-            "seed": seed,
-        },
-    )
-
-
-def _byoc_specs(weights: Sequence[Path], seed: int, device: str) -> list[FeatureSpec]:
-    from byoc_cli.pipeline.features import ByocExtractor
-    from byoc_cli.pipeline.weights import load_weights
-
-    del seed
-    if not weights:
-        raise ValueError("method byoc needs weights (or use byoc-random for a random encoder)")
-    from byoc_cli.pipeline.default_weights import default_weights_path, load_default_weights
-
-    shipped = default_weights_path()
-    labels = weights_labels(weights)
-    specs = []
-    for index, path in enumerate(weights):
-        is_shipped = shipped is not None and Path(path).resolve() == shipped.resolve()
-        loaded = load_default_weights() if is_shipped else load_weights(path)
-        voxel = float(loaded.metadata["voxel_size"])
-        label = labels[index]
-        specs.append(
-            FeatureSpec(
-                key="byoc" if len(weights) == 1 else f"byoc[{label}]",
-                extractor=ByocExtractor(loaded.encoder, voxel, device),
-                identity={
-                    "extractor": "byoc",
-                    "voxel_size": voxel,
-                    "weights": "file",
-                    "architecture": loaded.metadata["architecture"],
-                    "tensors_sha256": loaded.metadata["tensors_sha256"],
-                },
-                info={
-                    "source": "file",
-                    "path": str(path),
-                    "file_sha256": loaded.file_sha256,
-                    "variant": loaded.metadata["training"]["variant"],
-                    "steps": loaded.metadata["training"]["steps"],
-                    "architecture": loaded.metadata["architecture"],
-                },
-            )
-        )
-    return specs
-
-
-def _fpfh_spec(voxel_size: float) -> FeatureSpec:
-    from byoc_cli.pipeline import features as F
-
-    return FeatureSpec(
-        key="fpfh",
-        extractor=F.FpfhExtractor(voxel_size),
-        identity={
-            "extractor": "fpfh",
-            "voxel_size": float(voxel_size),
-            "normal_radius": F.FPFH_NORMAL_RADIUS,
-            "feature_radius": F.FPFH_FEATURE_RADIUS,
-            "normal_max_nn": F.FPFH_NORMAL_MAX_NN,
-            "feature_max_nn": F.FPFH_FEATURE_MAX_NN,
-        },
-        info={"source": "open3d", "voxel_size": float(voxel_size)},
-    )
 
 
 def build_methods(
@@ -447,13 +272,13 @@ def build_methods(
     fpfh: FeatureSpec | None = None
     for name in names:
         if name == "byoc":
-            for spec in _byoc_specs(weights, seed, device):
+            for spec in byoc_specs(weights, seed, device):
                 methods.append(Method(spec.key, "byoc", spec, _config("byoc", max_points)))
         elif name == "byoc-random":
-            spec = _random_spec(seed, device)
+            spec = random_spec(seed, device)
             methods.append(Method(spec.key, "byoc", spec, _config("byoc", max_points)))
         elif name in ("fpfh-ransac", "fpfh-procrustes"):
-            fpfh = fpfh or _fpfh_spec(fpfh_voxel_size)
+            fpfh = fpfh or fpfh_spec(fpfh_voxel_size)
             methods.append(Method(name, name, fpfh, _config(name, max_points)))
         elif name in ("icp-point", "icp-plane"):
             methods.append(Method(name, name, icp_distance=icp_distance))
@@ -462,12 +287,3 @@ def build_methods(
         else:
             raise ValueError(f"unknown method {name!r} (known: {', '.join(METHOD_NAMES)})")
     return methods
-
-
-def feature_specs(methods: Sequence[Method]) -> list[FeatureSpec]:
-    """The distinct feature specs of ``methods``, in first-use order."""
-    out: list[FeatureSpec] = []
-    for method in methods:
-        if method.features is not None and all(method.features is not s for s in out):
-            out.append(method.features)
-    return out
