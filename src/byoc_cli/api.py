@@ -200,9 +200,9 @@ class Registrar:
             return self._executor
 
     def _refine_cloud(self, feats: Features):
-        """The :class:`~byoc_cli.pipeline.refine.RefineCloud` of ``feats.cloud`` (kept for
+        """The :class:`~byoc_cli.pipeline.refine_levels.RefineCloud` of ``feats.cloud`` (kept for
         the ``REFINE_CACHE`` most recently used clouds; its levels are built on use)."""
-        from byoc_cli.pipeline.refine import RefineCloud
+        from byoc_cli.pipeline.refine_levels import RefineCloud
 
         key = id(feats.cloud)
         with self._lock:

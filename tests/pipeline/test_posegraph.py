@@ -15,7 +15,7 @@ from byoc_cli.pipeline.posegraph import (
     prepare_cloud,
     prepared_fpfh_ransac,
 )
-from byoc_cli.pipeline.refine import pair_cloud, refine_pair
+from byoc_cli.pipeline.refine_pairs import pair_cloud, refine_pair
 from byoc_cli.training.pseudo_poses import transform_difference
 
 

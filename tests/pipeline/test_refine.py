@@ -14,11 +14,11 @@ from byoc_cli.geometry.transforms import (
     make_transform,
 )
 from byoc_cli.pipeline import refine as refine_module
-from byoc_cli.pipeline.refine import (
-    RefineCloud,
+from byoc_cli.pipeline import refine_pairs
+from byoc_cli.pipeline import restarts as restarts_module
+from byoc_cli.pipeline.refine import RefineCloud, measure_fit, refine_multiscale
+from byoc_cli.pipeline.restarts import (
     Restarts,
-    measure_fit,
-    refine_multiscale,
     refine_starts,
     restart_refinement,
     restart_starts,
@@ -158,10 +158,10 @@ def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(ge
 
     T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
     src, tgt = _room_pair(30000, T_true, generator)
-    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
-    assert refine_module.icp_voxel(a) == pytest.approx(0.02)
-    assert refine_module.enough_points(a) and refine_module.enough_points(b)
-    fit = refine_module.refine_pair(a, b, np.eye(4))
+    a, b = refine_pairs.pair_cloud(src, 0.02), refine_pairs.pair_cloud(tgt, 0.02)
+    assert refine_pairs.icp_voxel(a) == pytest.approx(0.02)
+    assert refine_pairs.enough_points(a) and refine_pairs.enough_points(b)
+    fit = refine_pairs.refine_pair(a, b, np.eye(4))
     rot, trans = _pose_error(torch.from_numpy(fit.T_tgt_src), T_true)
     assert rot < 0.5 and trans < 0.005
     assert fit.fitness > 0.5 and 0 < fit.rmse < 0.02  # metres (sparse samples: a 3 cm gate)
@@ -169,14 +169,14 @@ def test_a_pair_refinement_reports_fitness_rmse_and_the_information_of_open3d(ge
     level = len(a.levels) - 1
     pcd_a = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a.source(level).numpy()))
     pcd_b = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b.target(level)[0].numpy()))
-    distance = refine_module.FINE_DISTANCE * 0.02
+    distance = refine_pairs.FINE_DISTANCE * 0.02
     theirs = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
         pcd_a, pcd_b, distance, fit.T_tgt_src
     )
     theirs = np.asarray(theirs)
     assert np.linalg.norm(fit.information - theirs) < 1e-3 * np.linalg.norm(theirs)
     # a cloud without points at a level is not enough for a pair
-    assert not refine_module.enough_points(refine_module.pair_cloud(src[:5], 0.02))
+    assert not refine_pairs.enough_points(refine_pairs.pair_cloud(src[:5], 0.02))
 
 
 def test_a_pyramid_cloud_averages_its_coarse_levels_from_the_finest(generator):
@@ -190,7 +190,7 @@ def test_a_pyramid_cloud_averages_its_coarse_levels_from_the_finest(generator):
         size = exact.levels[level][0]
         d = torch.cdist(b, a).min(dim=1).values
         assert abs(len(a) - len(b)) <= 0.1 * len(a) and float(d.median()) < 0.1 * size
-    assert refine_module.pair_cloud(src, 0.02).pyramid
+    assert refine_pairs.pair_cloud(src, 0.02).pyramid
 
 
 def test_a_pair_cloud_that_drops_its_points_refines_the_same(generator):
@@ -198,13 +198,13 @@ def test_a_pair_cloud_that_drops_its_points_refines_the_same(generator):
 
     T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
     src, tgt = _room_pair(20000, T_true, generator)
-    kept = refine_module.refine_pair(
-        refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02), np.eye(4)
+    kept = refine_pairs.refine_pair(
+        refine_pairs.pair_cloud(src, 0.02), refine_pairs.pair_cloud(tgt, 0.02), np.eye(4)
     )
-    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    a, b = refine_pairs.pair_cloud(src, 0.02), refine_pairs.pair_cloud(tgt, 0.02)
     a.drop_points(), b.drop_points()
     assert len(a.points) < len(src)  # the finest averages in place of the points
-    dropped = refine_module.refine_pair(a, b, np.eye(4))
+    dropped = refine_pairs.refine_pair(a, b, np.eye(4))
     assert np.array_equal(dropped.T_tgt_src, kept.T_tgt_src)
     assert np.array_equal(dropped.information, kept.information)
 
@@ -214,13 +214,13 @@ def test_a_pair_refinement_measures_its_information_only_when_read(generator, mo
 
     T_true = _motion([0.02, -0.03, 0.04], [0.03, -0.02, 0.01])
     src, tgt = _room_pair(20000, T_true, generator)
-    a, b = refine_module.pair_cloud(src, 0.02), refine_module.pair_cloud(tgt, 0.02)
+    a, b = refine_pairs.pair_cloud(src, 0.02), refine_pairs.pair_cloud(tgt, 0.02)
     calls = []
-    measure = refine_module.information_matrix
+    measure = refine_pairs.information_matrix
     monkeypatch.setattr(
-        refine_module, "information_matrix", lambda *args: calls.append(1) or measure(*args)
+        refine_pairs, "information_matrix", lambda *args: calls.append(1) or measure(*args)
     )
-    fit = refine_module.refine_pair(a, b, np.eye(4))
+    fit = refine_pairs.refine_pair(a, b, np.eye(4))
     assert calls == []
     first = fit.information
     assert calls == [1] and first.shape == (6, 6) and fit.information is first
@@ -241,7 +241,7 @@ def test_starts_refined_together_end_where_each_ends_alone(generator):
     T_true = _motion([0.1, -0.2, 0.15], [0.1, 0.2, -0.05])
     src, tgt = _room_pair(40_000, T_true, generator)
     src, tgt = RefineCloud(src, 0.025), RefineCloud(tgt, 0.025)
-    centroid = src.source(0, refine_module.RESTART_POINTS).mean(0)
+    centroid = src.source(0, restarts_module.RESTART_POINTS).mean(0)
     starts = restart_starts(_motion([0.05, 0.0, -0.1], [0.03, -0.02, 0.0]) @ T_true, centroid)
     starts = torch.cat([starts, _motion([0.0, 0.0, 3.0], [0.0, 0.0, 0.0])[None]])  # far off
     ends, fitness = refine_starts(src, tgt, starts, 0.025, max_source_points=2000)
@@ -269,7 +269,7 @@ def test_restart_starts_turn_about_the_centroid():
     moved = apply_transform(starts, centroid.expand(7, 1, 3))
     assert torch.allclose(moved, apply_transform(T, centroid[None]).expand(7, 1, 3), atol=1e-12)
     for k in range(1, 7):
-        assert _pose_error(starts[k], T)[0] == pytest.approx(refine_module.RESTART_DEG)
+        assert _pose_error(starts[k], T)[0] == pytest.approx(restarts_module.RESTART_DEG)
 
 
 def test_restart_bookkeeping_places_gains_and_returns():

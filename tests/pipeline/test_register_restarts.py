@@ -9,7 +9,8 @@ import pytest
 import torch
 
 import byoc_cli.pipeline.register as register_module
-from byoc_cli.pipeline.refine import Refinement, Restarts
+from byoc_cli.pipeline.refine import Refinement
+from byoc_cli.pipeline.restarts import Restarts
 
 
 def _turn(deg: float) -> torch.Tensor:

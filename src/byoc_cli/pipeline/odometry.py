@@ -1,9 +1,9 @@
 """Depth odometry: the camera trajectory of an RGB-D video by frame-to-keyframe ICP.
 
 For each frame (sub-sampled by ``frame_stride``), back-projected and prepared for the
-refinement (:func:`byoc_cli.pipeline.refine.pair_cloud`):
+refinement (:func:`byoc_cli.pipeline.refine_pairs.pair_cloud`):
 
-1. coarse-to-fine point-to-plane ICP (:func:`byoc_cli.pipeline.refine.refine_pair`, the
+1. coarse-to-fine point-to-plane ICP (:func:`byoc_cli.pipeline.refine_pairs.refine_pair`, the
    refinement of ``byoc register``, at the finest voxel ``voxel_size``) onto the current
    KEYFRAME, started from the constant
    velocity prediction (the last frame-to-frame motion applied once more); if that does not
@@ -35,8 +35,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.pipeline import posegraph, refine
-from byoc_cli.pipeline.refine import PairFit, RefineCloud
+from byoc_cli.pipeline import posegraph, refine_pairs
+from byoc_cli.pipeline.refine_levels import RefineCloud
+from byoc_cli.pipeline.refine_pairs import PairFit
 
 #: frame points farther than this from the camera are dropped (Kinect noise grows with z^2)
 DEFAULT_MAX_DEPTH = 4.0
@@ -167,11 +168,11 @@ def _track(
     """Register a frame onto its keyframe; returns the start that fitted (or the best try)."""
     tries = []
     for origin, start in (("velocity", T_key_prev @ velocity), ("previous", T_key_prev)):
-        est = refine.refine_pair(cloud, key, start)
+        est = refine_pairs.refine_pair(cloud, key, start)
         if _fits(est, config):
             return origin, est
         tries.append((origin, est))
-    est = refine.refine_pair(cloud, key, global_start(cloud, key))
+    est = refine_pairs.refine_pair(cloud, key, global_start(cloud, key))
     tries.append(("global", est))
     return max(tries, key=lambda t: (_fits(t[1], config), t[1].fitness, -t[1].rmse))
 
@@ -210,9 +211,9 @@ def _tracking_pass(
     first: str = "the sequence",
 ) -> _Tracked:
     key_cloud = load(0)
-    if not refine.enough_points(key_cloud):
+    if not refine_pairs.enough_points(key_cloud):
         raise RegistrationError(
-            f"{first}: the first frame has fewer than {refine.MIN_PAIR_POINTS} points within "
+            f"{first}: the first frame has fewer than {refine_pairs.MIN_PAIR_POINTS} points within "
             f"{config.max_depth:g} m at an ICP voxel of {config.voxel_size:g} m (check the depth "
             "scale, the maximum depth and the ICP voxel)"
         )
@@ -224,7 +225,7 @@ def _tracking_pass(
         cloud = load(k)
         kf = tr.keyframes[-1]
         T_key_prev = np.linalg.inv(tr.poses[kf]) @ tr.poses[k - 1]
-        usable = refine.enough_points(cloud)
+        usable = refine_pairs.enough_points(cloud)
         if usable:
             origin, est = _track(cloud, key_cloud, T_key_prev, velocity, global_start, config)
         if usable and _fits(est, config):
@@ -282,7 +283,7 @@ def _loop_edges(
         for _, a in sorted(near)[: config.loop_max_candidates]:
             stats["loops_tried"] += 1
             T_a_b = np.linalg.inv(poses[a]) @ poses[b]
-            est = refine.refine_pair(
+            est = refine_pairs.refine_pair(
                 key_clouds[tr.keyframes[b]], key_clouds[tr.keyframes[a]], T_a_b
             )
             if est.fitness >= config.loop_min_fitness and est.rmse <= config.max_rmse:
@@ -304,7 +305,7 @@ def _optimise(tr: _Tracked, loops: list[posegraph.Edge], config: OdometryConfig,
             continue
         initial = [tr.poses[tr.keyframes[n]] for n in nodes]
         optimised, kept = posegraph.optimize_pose_graph(
-            initial, edges, refine.FINE_DISTANCE * config.voxel_size
+            initial, edges, refine_pairs.FINE_DISTANCE * config.voxel_size
         )
         anchor = initial[0] @ np.linalg.inv(optimised[0])
         for n, pose in zip(nodes, optimised, strict=True):
@@ -346,7 +347,7 @@ def estimate_trajectory(
     def load(k: int) -> RefineCloud:
         start = time.perf_counter()
         points = frame_points(sequence, frames[k], config.max_depth)
-        cloud = refine.pair_cloud(points, config.voxel_size)
+        cloud = refine_pairs.pair_cloud(points, config.voxel_size)
         timings["load"] += time.perf_counter() - start
         return cloud
 

@@ -2,7 +2,7 @@
 
 Shared by the self-posed training pairs (``byoc_cli.training.pseudo_poses``), ``odometry``
 and ``register-scans``. The pairs of ``odometry`` and ``register-scans`` are refined by
-:func:`byoc_cli.pipeline.refine.refine_pair`; the self-posed pairs by Open3D's multi-scale ICP
+:func:`byoc_cli.pipeline.refine_pairs.refine_pair`; the self-posed pairs by Open3D's multi-scale ICP
 (:func:`multiscale_icp`, below). Clouds are ``(N, 3)`` float numpy arrays in
 metres. Transforms follow the package convention: ``T_tgt_src`` is ``(4, 4)`` float64 on
 column vectors. A
@@ -90,7 +90,7 @@ def _fpfh_ransac_clouds(src, tgt, size: float, seed: int) -> np.ndarray:
 
 # ------------------------------------------------ the self-posed training pairs' ICP (Open3D)
 # The self-posed pairs keep Open3D's multi-scale ICP: with the refinement of ``byoc
-# register`` (``refine.refine_pair``) the wide pairs of tum_fr1_desk_full measured worse
+# register`` (``refine_pairs.refine_pair``) the wide pairs of tum_fr1_desk_full measured worse
 # (gaps of 40 and 60 frames: 19 and 3 pairs kept instead of 32 and 28, median rotation
 # error 3.2 and 4.1 deg instead of 1.9 and 2.0; CHANGELOG).
 

@@ -113,7 +113,7 @@ class RefinementRecipe:
             coarse-to-fine point-to-plane ICP on the full clouds, degenerate directions held)
             or ``"none"``.
         restarts: after ``"multiscale"``, refine again from starts turned around the result
-            and keep the better end (:func:`byoc_cli.pipeline.refine.restart_refinement`).
+            and keep the better end (:func:`byoc_cli.pipeline.restarts.restart_refinement`).
     """
 
     method: str

@@ -22,12 +22,8 @@ from byoc_cli.matching import ratio_test_correspondences
 from byoc_cli.pipeline.confidence import MODEL_KINDS, MODELS, probability_right
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.recipe import ESTIMATORS, PAPER, RegistrationRecipe
-from byoc_cli.pipeline.refine import (
-    Refinement,
-    measure_fit,
-    refine_multiscale,
-    restart_refinement,
-)
+from byoc_cli.pipeline.refine import Refinement, measure_fit, refine_multiscale
+from byoc_cli.pipeline.restarts import restart_refinement
 from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
@@ -63,7 +59,7 @@ class RegisterConfig:
             (:func:`byoc_cli.pipeline.refine.refine_multiscale`: coarse to fine on the
             full-resolution clouds, degenerate directions held).
         restarts: after ``"multiscale"`` refinement, refine again from starts turned around the
-            result (:func:`byoc_cli.pipeline.refine.restart_refinement`), keep the end of best
+            result (:func:`byoc_cli.pipeline.restarts.restart_refinement`), keep the end of best
             fitness when it is elsewhere and better by ``SWITCH_GAIN``, and report how the
             restarts agree (``restart_return``, ``restart_gain``).
         restart_floor: the restarts run only for a result whose confidence before them (with

@@ -1,7 +1,7 @@
 """A whole scan: many overlapping clouds registered into one frame (``byoc register-scans``).
 
 1. Every cloud's features are computed once (the extractor of ``byoc register``) and each cloud
-   is prepared for ICP (:func:`byoc_cli.pipeline.refine.pair_cloud`).
+   is prepared for ICP (:func:`byoc_cli.pipeline.refine_pairs.pair_cloud`).
 2. Pairs: every pair ``i < j`` for small sets (``<= all_pairs_max`` clouds); for larger sets,
    the neighbours in the given order (``j - i <= neighbours``), then the CANDIDATE pairs: the
    other pairs whose coarse clouds overlap by at least ``candidate_overlap`` under the poses
@@ -9,7 +9,7 @@
 3. Each pair is registered with the tool's pairwise registration
    (:func:`byoc_cli.pipeline.register.estimate_transform`, source ``j`` onto target ``i``),
    refined by the multiscale point-to-plane ICP of ``byoc register``
-   (:func:`byoc_cli.pipeline.refine.refine_pair`; candidate pairs also from the first graph's
+   (:func:`byoc_cli.pipeline.refine_pairs.refine_pair`; candidate pairs also from the first graph's
    relative pose, the better fit wins), and kept when the ICP fitness is at least
    ``min_fitness``.
 4. A pose graph (node ``k`` = cloud ``k``, ``T_world_k``; edge ``(j, i)`` = ``T_i_j`` with
@@ -31,9 +31,9 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import RegistrationError, ShapeError, require_open3d
-from byoc_cli.pipeline import posegraph, refine
+from byoc_cli.pipeline import posegraph, refine_pairs
 from byoc_cli.pipeline.features import FeatureExtractor
-from byoc_cli.pipeline.refine import RefineCloud
+from byoc_cli.pipeline.refine_levels import RefineCloud
 from byoc_cli.pipeline.register import RegisterConfig, estimate_transform
 from byoc_cli.threads import worker_pool
 
@@ -147,15 +147,17 @@ def _register_pair(
         error = str(exc)
     if T_prior is not None:
         starts.append(T_prior)
-    if starts and not (refine.enough_points(clouds[i]) and refine.enough_points(clouds[j])):
-        starts, error = [], f"fewer than {refine.MIN_PAIR_POINTS} points at an ICP scale"
+    if starts and not (
+        refine_pairs.enough_points(clouds[i]) and refine_pairs.enough_points(clouds[j])
+    ):
+        starts, error = [], f"fewer than {refine_pairs.MIN_PAIR_POINTS} points at an ICP scale"
     if not starts:
         return PairRecord(
             i, j, kind, "failed", None, None, confidence, float("nan"), float("nan"), "",
             False, time.perf_counter() - start, error,
         )  # fmt: skip
     est = max(
-        (refine.refine_pair(clouds[j], clouds[i], T) for T in starts),
+        (refine_pairs.refine_pair(clouds[j], clouds[i], T) for T in starts),
         key=lambda e: (e.fitness, -e.rmse),
     )
     status = "kept" if est.fitness >= min_fitness else "rejected"
@@ -218,7 +220,7 @@ def _optimise(
     optimised, kept = posegraph.optimize_pose_graph(
         [initial[k] for k in placed],
         edges,
-        refine.FINE_DISTANCE * config.icp_voxel,
+        refine_pairs.FINE_DISTANCE * config.icp_voxel,
         edge_prune_threshold=config.edge_prune_threshold,
         preference_loop_closure=config.preference_loop_closure,
     )
@@ -245,7 +247,7 @@ def _candidates(
 ) -> list[tuple[int, int]]:
     """Untried pairs whose coarse clouds overlap by at least ``min_overlap`` under ``poses``."""
     o3d = require_open3d()
-    radius = CANDIDATE_RADIUS * refine.icp_voxel(clouds[0])
+    radius = CANDIDATE_RADIUS * refine_pairs.icp_voxel(clouds[0])
     world = {}
     for k, pose in enumerate(poses):
         if pose is not None:
@@ -320,7 +322,7 @@ def _register_all(arrays, extractor, register_config, config, labels, report, ti
         start = time.perf_counter()
         feats = extractor(torch.from_numpy(arrays[k]), label=labels[k])
         mid = time.perf_counter()
-        cloud = refine.pair_cloud(arrays[k], config.icp_voxel).prepare()
+        cloud = refine_pairs.pair_cloud(arrays[k], config.icp_voxel).prepare()
         return feats, cloud, mid - start, time.perf_counter() - mid
 
     feats, clouds = [], []
