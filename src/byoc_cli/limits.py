@@ -39,6 +39,15 @@ MAX_LR = 1.0
 MIN_POSITIVE = 1e-12
 MAX_POSITIVE = 1e12
 
+#: The robust estimators' defaults (the registration recipe's; read without torch by the
+#: commands' help): candidates of randomized Procrustes and correspondences per candidate
+#: (the paper's section 3.1); RANSAC's limits, at most this many minimal sets, fewer once the
+#: best inlier share makes this confidence of having drawn an all-inlier set.
+NUM_SUBSETS = 100
+SUBSET_SIZE = 20
+MAX_ITERATIONS = 100_000
+CONFIDENCE = 0.999
+
 #: Data-loading worker processes per core this process may run on.
 WORKERS_PER_CORE = 2
 

@@ -36,6 +36,7 @@ from typing import Any, NamedTuple
 import torch
 
 from byoc_cli.errors import RegistrationError
+from byoc_cli.evaluation.method_names import METHOD_NAMES, parse_method_names
 from byoc_cli.geometry import voxelize
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.recipe import PAPER, PRESETS, RegistrationRecipe
@@ -62,16 +63,6 @@ __all__ = [
     "weights_labels",
 ]
 
-#: Every method name ``--method`` accepts, in table order.
-METHOD_NAMES = (
-    "byoc",
-    "byoc-random",
-    "fpfh-ransac",
-    "fpfh-procrustes",
-    "icp-point",
-    "icp-plane",
-    "identity",
-)
 #: FPFH voxel size (m): the fpfh recipe's, as ``byoc register --features fpfh``.
 FPFH_VOXEL_SIZE = PRESETS["fpfh"].features.reference_voxel
 #: ICP input voxel size (m).
@@ -282,24 +273,6 @@ def icp_points(points: torch.Tensor) -> torch.Tensor:
     """The ICP input: ``points (N, 3)`` voxelised at :data:`ICP_VOXEL_SIZE` (first point)."""
     grid = voxelize(points, ICP_VOXEL_SIZE)
     return points[grid.point_index].to(torch.float64)
-
-
-def parse_method_names(values: Sequence[str]) -> list[str]:
-    """Split ``values`` on commas and whitespace, check the names, drop repeats (keep order).
-
-    Raises:
-        ValueError: an unknown name (the message lists the known ones) or no name at all.
-    """
-    names: list[str] = []
-    for value in values:
-        for part in value.replace(",", " ").split():
-            if part not in METHOD_NAMES:
-                raise ValueError(f"unknown method {part!r} (known: {', '.join(METHOD_NAMES)})")
-            if part not in names:
-                names.append(part)
-    if not names:
-        raise ValueError(f"no method given (known: {', '.join(METHOD_NAMES)})")
-    return names
 
 
 def weights_labels(weights: Sequence[str | Path]) -> list[str]:

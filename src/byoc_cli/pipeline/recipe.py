@@ -29,8 +29,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-from byoc_cli.fitting.randomized import NUM_SUBSETS, SUBSET_SIZE
-from byoc_cli.fitting.ransac import CONFIDENCE, MAX_ITERATIONS
+from byoc_cli.limits import CONFIDENCE, MAX_ITERATIONS, NUM_SUBSETS, SUBSET_SIZE
 from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 #: feature types
