@@ -362,3 +362,32 @@ def test_too_few_pairs_names_the_option_to_change(shared_data, tmp_path):
     assert len(lines) == 1 and "set --view-spacing 2 or less (8 pairs)" in lines[0]
     result = _run([*args, "--batch-size", "10", "--out", str(tmp_path / "run")])
     assert "set --batch-size 9 or less (at --view-spacing 1)" in result.stderr
+
+
+def _corrupt_sequence(shared_data, root):
+    """tum_fr1_xyz's layout with every depth frame replaced by bytes that are no image."""
+    import shutil
+
+    data = shared_data / "rgbd" / "tum_fr1_xyz"
+    (root / "depth").mkdir(parents=True)
+    for name in ("depth.txt", "intrinsics.json"):
+        shutil.copy(data / name, root / name)
+    for png in (data / "depth").iterdir():
+        (root / "depth" / png.name).write_bytes(b"not a png\n")
+    return root
+
+
+@pytest.mark.parametrize("variant", ["self-posed", "byoc-geo"])
+def test_a_run_whose_frames_are_all_corrupt_leaves_no_run_folder(shared_data, tmp_path, variant):
+    data = _corrupt_sequence(shared_data, tmp_path / "seq")
+    out = tmp_path / "new" / "run"
+    args = ["--rgbd-dir", str(data), "--variant", variant, "--steps", "2", "--device", "cpu"]
+    args += ["--batch-size", "1", "--view-spacing", "2", "--num-workers", "0"]
+    result = _run([*args, "--out", str(out)])
+    assert result.exit_code == 1, result.output
+    assert "not an image file" in result.stderr and "Traceback" not in result.output
+    assert not (tmp_path / "new").exists()  # nor the parent the run would have made
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert _run([*args, "--out", str(empty)]).exit_code == 1
+    assert list(empty.iterdir()) == []

@@ -43,6 +43,7 @@ from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics, read_m
 from byoc_cli.training.run_folder import (
     CONFIG_FILE,
     WEIGHTS_FILE,
+    NewRunFolder,
     has_progress,
     start_run_folder,
     truncate_metrics,
@@ -230,16 +231,36 @@ def run_training(
         (without ``resume``). TrainingError: the run diverged.
     """
     if deterministic is None:
-        return _Run(config, make_task, resume, callbacks, info).run()
+        return _run_or_undo(config, make_task, resume, callbacks, info)
     previous = (
         torch.are_deterministic_algorithms_enabled(),
         torch.is_deterministic_algorithms_warn_only_enabled(),
     )
     torch.use_deterministic_algorithms(deterministic, warn_only=True)
     try:
-        return _Run(config, make_task, resume, callbacks, info).run()
+        return _run_or_undo(config, make_task, resume, callbacks, info)
     finally:
         torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+
+
+def _run_or_undo(
+    config: TrainConfig,
+    make_task: Callable[[TrainConfig, DistInfo], TrainTask],
+    resume: bool,
+    callbacks: TrainCallbacks,
+    info: DistInfo,
+) -> TrainResult:
+    """A :class:`_Run`; a new run that fails (or is interrupted) before its first step leaves
+    its run folder as it found it (:class:`NewRunFolder`: none, when there was none)."""
+    found = NewRunFolder(Path(config.out)) if not resume and info.is_main else None
+    run = None
+    try:
+        run = _Run(config, make_task, resume, callbacks, info)
+        return run.run()
+    except BaseException:
+        if found is not None and (run is None or run.step == 0):
+            found.undo()
+        raise
 
 
 class _Run:
