@@ -19,6 +19,7 @@ from typing import Any
 
 import click
 
+from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.errors import EXIT_ERROR, EXIT_LOW_CONFIDENCE, EXIT_OK, handle_errors
 from byoc_cli.cli.options import (
     device_option,
@@ -39,6 +40,8 @@ log = logging.getLogger("byoc")
 
 #: a pair's status in the summary
 OK, LOW_CONFIDENCE, FAILED, SKIPPED = "ok", "low_confidence", "failed", "skipped"
+#: pairs below the gate named on stderr at the end of a run (the others are counted)
+NAMED_BELOW_GATE = 10
 
 
 class ShardType(click.ParamType):
@@ -117,7 +120,8 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     "register-batch",
     epilog="Exit codes: 0 every pair registered (or skipped); 1 bad input, or a pair failed "
     "(the others are still registered); 2 usage error; 3 a pair registered below "
-    "--min-confidence (its T file is still written).",
+    "--min-confidence (its T file is still written), or skipped whose recorded confidence "
+    "is below it; such pairs are named on stderr (the first 10, then a count).",
 )
 @click.argument("pairs", type=click.Path(path_type=Path, dir_okay=False))
 @path_option(
@@ -165,7 +169,8 @@ def register_batch(
     ('#' comments and blank lines allowed; paths relative to the file), writing one T file
     per pair and a JSON Lines summary; every option of `byoc register` applies to each pair.
 
-    A rerun skips the pairs whose T file exists (--overwrite to redo them).
+    A rerun skips the pairs whose T file exists (--overwrite to redo them); their results as
+    the summary recorded them count towards the exit code.
     """
     from byoc_cli.errors import InputError
     from byoc_cli.io.outputs import OutputSet, new_folders
@@ -202,6 +207,7 @@ def register_batch(
         summary = out_dir / name
     mine = {entry.index for entry, _ in planned}
     todo, skipped = [], []
+    recorded = _recorded_results(summary) if not overwrite else {}
     with new_folders(out_dir):  # bad input leaves no folder behind (nor a parent made here)
         policy = OutputSet(inputs)
         policy.claim(summary)
@@ -217,10 +223,15 @@ def register_batch(
         made = registrar(recipe, device) if todo else None
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
+    gate = recipe.gate.min_confidence
+    below: list[tuple[Any, float | None, bool]] = []  # (entry, confidence, skipped)
     started = time.perf_counter()
     with _Summary(summary) as lines:
         for entry, output in skipped:
-            lines.write(_record(entry, output, SKIPPED))
+            earlier = recorded.get(_output_key(output))
+            lines.write(_record(entry, output, SKIPPED, recorded=earlier))
+            if earlier is not None and _below(earlier, gate):
+                below.append((entry, earlier.get("confidence"), True))
         if made is not None:
             run = _PairRunner(
                 made,
@@ -238,22 +249,99 @@ def register_batch(
                     record = run.finish(entry, output, done)
                     counts[record["status"]] += 1
                     lines.write(record)
+                    if record["status"] == LOW_CONFIDENCE:
+                        below.append((entry, record["confidence"], False))
                     progress.advance(f"{counts[FAILED]} failed")
                     if record["status"] == FAILED:
                         click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
     seconds = time.perf_counter() - started
+    skipped_below = sum(1 for *_, was_skipped in below if was_skipped)
+    if not is_quiet(False):
+        for line in _below_gate_lines(below, gate, summary):
+            click.echo(line, err=True)
+    skipped_note = ""
+    if skipped_below:
+        skipped_note = f"; {skipped_below} of them below --min-confidence as recorded"
     click.echo(
         f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
-        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}; "
-        f"{len(todo)} pairs in {seconds:.1f} s ({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
+        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists{skipped_note}); "
+        f"summary {summary}; {len(todo)} pairs in {seconds:.1f} s "
+        f"({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
         err=True,
     )
     if counts[FAILED]:
         raise SystemExit(EXIT_ERROR)
-    raise SystemExit(EXIT_LOW_CONFIDENCE if counts[LOW_CONFIDENCE] else EXIT_OK)
+    raise SystemExit(EXIT_LOW_CONFIDENCE if below else EXIT_OK)
 
 
-def _record(entry, output: Path, status: str, error: str | None = None) -> dict:
+def _output_key(output: Path) -> str:
+    """How a T file is matched with the records of earlier runs (its absolute path)."""
+    return str(output.absolute())
+
+
+def _recorded_results(summary: Path) -> dict[str, dict]:
+    """The last registered result (status ``ok`` or ``low_confidence``) an earlier run
+    recorded in ``summary`` for each T file: ``{output key: {"status", "confidence",
+    "min_confidence"}}``; empty when there is no summary or it cannot be read (a line cut by
+    a kill is passed over)."""
+    import json
+
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import open_input
+
+    if not summary.exists():
+        return {}
+    found: dict[str, dict] = {}
+    try:
+        with open_input(summary, "report") as file:
+            for raw in file:
+                try:
+                    record = json.loads(raw)
+                except ValueError:
+                    continue
+                if not isinstance(record, dict) or record.get("status") not in (OK, LOW_CONFIDENCE):
+                    continue
+                output = record.get("output")
+                if isinstance(output, str):
+                    keep = ("status", "confidence", "min_confidence")
+                    found[_output_key(Path(output))] = {k: record.get(k) for k in keep}
+    except InputError as exc:
+        log.warning("the statuses of pairs done earlier are not known: %s", exc)
+    return found
+
+
+def _below(recorded: dict, gate: float) -> bool:
+    """Whether a recorded result is below this run's gate (its confidence against ``gate``;
+    without a confidence, its recorded status)."""
+    confidence = recorded.get("confidence")
+    if isinstance(confidence, int | float) and not isinstance(confidence, bool):
+        return confidence < gate
+    return recorded.get("status") == LOW_CONFIDENCE
+
+
+def _below_gate_lines(below: list, gate: float, summary: Path) -> list[str]:
+    """The pairs below the gate, one line each up to :data:`NAMED_BELOW_GATE`, then a count."""
+    lines = []
+    for entry, confidence, was_skipped in below[:NAMED_BELOW_GATE]:
+        shown = "unknown" if confidence is None else f"{confidence:.3f}"
+        when = " (recorded by an earlier run; T file kept)" if was_skipped else ""
+        lines.append(
+            f"byoc: line {entry.line}: {entry.source} -> {entry.target}: confidence {shown} "
+            f"is below --min-confidence {gate:g}{when}"
+        )
+    if len(below) > NAMED_BELOW_GATE:
+        lines.append(
+            f"byoc: and {len(below) - NAMED_BELOW_GATE} more pairs below --min-confidence "
+            f"(the summary {summary} has every one)"
+        )
+    return lines
+
+
+def _record(
+    entry, output: Path, status: str, error: str | None = None, recorded: dict | None = None
+) -> dict:
+    """The fields every summary line has; ``recorded``: a skipped pair's result as an earlier
+    run recorded it (``status``, ``confidence``, ``min_confidence``)."""
     return {
         "index": entry.index,
         "line": entry.line,
@@ -262,6 +350,7 @@ def _record(entry, output: Path, status: str, error: str | None = None) -> dict:
         "output": str(output),
         "status": status,
         "error": error,
+        "recorded": recorded,
     }
 
 
