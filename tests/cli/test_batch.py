@@ -123,7 +123,7 @@ def test_pairs_side_by_side_give_the_transforms_of_one_thread(
             # each fragment encoded once per voxel (and share of its points) its pairs chose,
             # also by two workers
             voxels = {
-                (s[c], s["voxel_size_m"], s["voxel_choice"]["feature_points_kept"][k])
+                (s[c], s["voxel_size"], s["voxel_choice"]["feature_points_kept"][k])
                 for s in summary
                 for k, c in enumerate(("source", "target"))
             }

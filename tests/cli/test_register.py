@@ -94,7 +94,9 @@ def test_fpfh_registers_demo_pair(runner, demo, tmp_path):
         "inlier_ratio",
         "overlap",
         "confidence",
-        "voxel_size_m",
+        "voxel_size",
+        "inlier_threshold",
+        "unit",
         "seed",
         "timings_s",
         "weights_sha256",
@@ -330,11 +332,16 @@ def test_scale_option_returns_transform_in_input_units(runner, tmp_path):
             "0.001",
             "-o",
             str(out),
+            "--json",
+            str(tmp_path / "r.json"),
         ],
     )
     assert res.exit_code == 0, res.output
     T = read_transform(out)
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3] * 1000.0) < 50.0  # millimetres
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert (report["unit"], report["voxel_size"]) == ("m", 0.05)  # --scale: metres are known
+    assert "voxel 0.05 m" in res.stderr
 
 
 def test_usage_errors_exit_2(runner, tmp_path):
@@ -433,7 +440,7 @@ def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights,
     figures = (
         f"confidence {report['confidence']:.3f}, {report['num_inliers']}/"
         f"{report['num_correspondences']} inliers within "
-        f"{100 * report['inlier_threshold_m']:.1f} cm, voxel {report['voxel_size_m']:g} m, "
+        f"{100 * report['inlier_threshold']:.1f} cm, voxel {report['voxel_size']:g} m, "
     )
     assert figures in lines[0] and lines[0].endswith(" s")
     assert res.stdout == ""

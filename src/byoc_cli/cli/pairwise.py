@@ -91,10 +91,42 @@ def check_depth_inputs(paths, intrinsics: Path | None) -> None:
         log.warning("--intrinsics %s is not used: no input is a depth image", intrinsics)
 
 
+def known_unit(result, pair: tuple[Path, Path], scale: float | None) -> str | None:
+    """``"m"`` when the points a registration measured its voxel and inlier threshold in are
+    known to be metres, else None (the inputs' own units, whatever they are).
+
+    Known: ``--scale`` was given (it brings the inputs to metres), both inputs are depth
+    images (their depth scale gives metres), the features' own voxel was asked for (``own``:
+    the inputs are checked to look like metres), or the auto voxel found scans of the size
+    the features were trained on and kept their own voxel (its unit check). A voxel the auto
+    path scaled (millimetres, objects, LiDAR) or a number given leaves the unit unknown.
+    """
+    if scale is not None:
+        return "m"
+    if all(Path(p).suffix.lower() in DEPTH_EXTENSIONS for p in pair):
+        return "m"
+    voxel = (result.recipe or {}).get("features", {}).get("voxel")
+    choice = result.voxel_choice
+    if voxel == "own":
+        return "m"
+    if choice is not None and choice["refine_voxel_size"] == choice["reference_voxel_size"]:
+        return "m"
+    return None
+
+
+def format_length(value: float, unit: str | None) -> str:
+    """A length for a message: ``5.0 cm`` or ``0.025 m`` in metres, ``51.6 input units``
+    when the unit is not known (:func:`known_unit`)."""
+    if unit != "m":
+        return f"{value:.4g} input units"
+    return f"{100 * value:.1f} cm" if value < 1 else f"{value:.4g} m"
+
+
 def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -> dict:
     """The JSON report of one registration (``register --json``, a line of the batch
     summary); ``run``: ``min_confidence``, ``scale``, ``device`` and ``started`` (the
-    ``perf_counter`` the command started at)."""
+    ``perf_counter`` the command started at). ``voxel_size`` and ``inlier_threshold`` are in
+    the units ``unit`` names: ``"m"``, or None for the inputs' own (:func:`known_unit`)."""
     import time
 
     from byoc_cli import __version__
@@ -113,13 +145,14 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "num_correspondences": result.num_correspondences,
         "num_inliers": result.num_inliers,
         "inlier_ratio": result.inlier_ratio,
-        "inlier_threshold_m": result.inlier_threshold,
+        "inlier_threshold": result.inlier_threshold,
         "overlap": result.overlap,
         "confidence": result.confidence,
         "cues": result.cues,
         "min_confidence": run["min_confidence"],
         "passed": result.confidence >= run["min_confidence"],
-        "voxel_size_m": result.voxel_size,
+        "voxel_size": result.voxel_size,
+        "unit": known_unit(result, pair, run["scale"]),
         "voxel_choice": result.voxel_choice,
         "fallback": result.fallback,
         "scale": run["scale"],

@@ -30,6 +30,7 @@ from byoc_cli.cli.output import (
 )
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
+    format_length,
     input_options,
     registrar,
     registration_report,
@@ -96,7 +97,9 @@ def register(
     TARGET's frame: x_tgt = R x_src + t (column vectors; T = [[R, t], [0, 0, 0, 1]]).
 
     SOURCE and TARGET are point clouds (.ply, .pcd, .xyz, .pts, .npy of shape N x 3) in
-    metres, or depth images (.png, with --intrinsics and --depth-scale).
+    any unit (the voxel follows their size; T is in their units; --scale brings them to
+    metres), or depth images (.png, with --intrinsics and --depth-scale). Lengths the report
+    gives are in metres when the unit is known, else in input units.
     """
     started = time.perf_counter()
     recipe_file = options.get("recipe_path")
@@ -145,7 +148,8 @@ def register(
         elif output is not None:
             atomic_write_text(output, format_transform(T))
     if not is_quiet(False):
-        click.echo(summary_line(source, target, result, report["timings_s"]["command"]), err=True)
+        seconds = report["timings_s"]["command"]
+        click.echo(summary_line(source, target, result, seconds, report["unit"]), err=True)
     if not passed:
         click.echo(
             f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
@@ -155,13 +159,15 @@ def register(
         raise SystemExit(EXIT_LOW_CONFIDENCE)
 
 
-def summary_line(source: Path, target: Path, result, seconds: float) -> str:
+def summary_line(source: Path, target: Path, result, seconds: float, unit: str | None) -> str:
     """The line a successful ``byoc register`` prints on stderr: confidence, inliers, the
-    voxel used and the time (``-q`` silences it)."""
+    voxel used (in metres when ``unit`` is ``"m"``, else in input units) and the time (``-q``
+    silences it)."""
+    voxel = f"{result.voxel_size:g} m" if unit == "m" else f"{result.voxel_size:.4g} input units"
     line = (
         f"byoc: registered {source} -> {target}: confidence {result.confidence:.3f}, "
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
-        f"{100 * result.inlier_threshold:.1f} cm, voxel {result.voxel_size:g} m, {seconds:.1f} s"
+        f"{format_length(result.inlier_threshold, unit)}, voxel {voxel}, {seconds:.1f} s"
     )
     if result.fallback and result.fallback["used"]:
         line += (
