@@ -146,3 +146,46 @@ def test_an_unrefined_right_result_passes(demo, tmp_path):
     rot, trans = _errors(read_transform(tmp_path / "T.txt"), T_gt)
     assert rot < 5.0 and trans < 0.10
     assert report["refine"] == "none" and 0.45 <= report["confidence"] < 1.0
+
+
+def test_mixed_units_are_refused_naming_the_per_cloud_options(demo, tmp_path):
+    src, tgt, _ = demo
+    result, _ = _register(tmp_path, src * 1000, tgt)
+    assert result.exit_code == 1, result.output
+    line = result.stderr.strip().splitlines()[-1]
+    assert "same units?" in line and "--source-scale" in line and "--target-scale" in line
+
+
+def test_a_millimetre_source_and_a_metre_target_register_with_source_scale(demo, tmp_path):
+    src, tgt, T_gt = demo
+    aligned = tmp_path / "aligned.ply"
+    flags = ("--source-scale", "0.001", "--aligned", str(aligned))
+    result, report = _register(tmp_path, src * 1000, tgt, *flags)
+    assert result.exit_code == 0, result.output
+    T = read_transform(tmp_path / "T.txt")
+    rot, trans = _errors(T, T_gt)
+    assert rot < 5.0 and trans < 0.10, (rot, trans)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)  # rigid: the scale is not in T
+    assert (report["source_scale"], report["target_scale"], report["scale"]) == (0.001, 1.0, None)
+    moved = read_point_cloud(aligned).points  # the source, in metres, in the target's frame
+    expected = src @ T[:3, :3].T + T[:3, 3]
+    assert np.allclose(moved, expected, atol=1e-6)
+    # register-batch gives the same bytes
+    (tmp_path / "pairs.txt").write_text("s.ply t.ply batch.txt\n")
+    batch = CliRunner().invoke(
+        cli, ["register-batch", str(tmp_path / "pairs.txt"), "--source-scale", "0.001"]
+    )
+    assert batch.exit_code == 0, batch.output
+    assert (tmp_path / "batch.txt").read_bytes() == (tmp_path / "T.txt").read_bytes()
+
+
+def test_a_metre_source_and_a_millimetre_target_give_t_in_millimetres(demo, tmp_path):
+    src, tgt, T_gt = demo
+    result, report = _register(tmp_path, src, tgt * 1000, "--target-scale", "0.001")
+    assert result.exit_code == 0, result.output
+    T = read_transform(tmp_path / "T.txt")
+    T_gt_mm = T_gt.copy()
+    T_gt_mm[:3, 3] *= 1000
+    rot, trans = _errors(T, T_gt_mm)
+    assert rot < 5.0 and trans < 100.0, (rot, trans)  # millimetres
+    assert (report["source_scale"], report["target_scale"]) == (1.0, 0.001)

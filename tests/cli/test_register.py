@@ -477,3 +477,20 @@ def test_dev_stdout_is_stdout_and_dev_stderr_is_refused(runner, random_weights, 
         assert res.exit_code == 1 and len(lines) == 1, res.stderr
         assert lines[0].startswith(f"byoc: error: {path}: ") and phrase in lines[0]
     assert not (tmp_path / "U.txt").exists()
+
+
+@pytest.mark.parametrize(
+    ("options", "factors"),
+    [
+        ({}, ((None, None), False)),
+        ({"scale": 0.001}, ((0.001, 0.001), True)),
+        ({"source_scale": 0.001}, ((0.001, 1.0), False)),
+        ({"target_scale": 0.01}, ((1.0, 0.01), False)),
+        ({"scale": 0.001, "target_scale": 1.0}, ((0.001, 1.0), True)),
+        ({"source_scale": 0.001, "target_scale": 0.01}, ((0.001, 0.01), True)),
+    ],
+)
+def test_each_clouds_factor_to_metres(options, factors):
+    from byoc_cli.cli.pairwise import cloud_factors
+
+    assert cloud_factors(options) == factors

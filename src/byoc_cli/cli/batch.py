@@ -30,6 +30,7 @@ from byoc_cli.cli.options import (
 )
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
+    cloud_factors,
     input_options,
     registrar,
     registration_report,
@@ -238,6 +239,7 @@ def register_batch(
                 FeatureCache(2 * cache_size),  # clouds and their features
                 {
                     "scale": options["scale"],
+                    "factors": cloud_factors(options),
                     "intrinsics": intrinsics,
                     "depth_scale": options["depth_scale"],
                 },
@@ -389,16 +391,17 @@ class _PairRunner:
         started = time.perf_counter()
         timings: dict[str, float] = {}
         try:
-            cloud_src = self._cloud(entry.source, "source", timings)
-            cloud_tgt = self._cloud(entry.target, "target", timings)
+            (factor_src, factor_tgt), _ = self.load["factors"]
+            cloud_src = self._cloud(entry.source, "source", factor_src, timings)
+            cloud_tgt = self._cloud(entry.target, "target", factor_tgt, timings)
             choice, voxels = None, [(None, None, 1.0)] * 2
             if self.registrar.auto_voxel:
                 choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
                 voxels = [
                     (choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)
                 ]
-            src = self._features(cloud_src, entry.source, voxels[0], timings, "features_src")
-            tgt = self._features(cloud_tgt, entry.target, voxels[1], timings, "features_tgt")
+            src = self._features(cloud_src, voxels[0], timings, "features_src")
+            tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
             result = self.registrar.match(src, tgt)
             result = result._replace(
                 timings={**timings, **result.timings},
@@ -408,31 +411,34 @@ class _PairRunner:
             result = exc
         return result, time.perf_counter() - started
 
-    def _cloud(self, path: Path, label: str, timings: dict):
-        """``(points, name, CloudScale | None)`` of a file, read (and measured for an auto
-        voxel) once while it stays in the cache."""
+    def _cloud(self, path: Path, label: str, factor: float | None, timings: dict):
+        """``(points, name, CloudScale | None, key)`` of a file times its ``factor`` to metres,
+        read (and measured for an auto voxel) once while it stays in the cache."""
         start = time.perf_counter()
+        key = ("cloud", path.resolve(), factor)
 
         def read():
-            load = dict(self.load)
-            points, name = self.registrar.load(path, label, load.pop("scale"), **load)
+            load = {k: self.load[k] for k in ("intrinsics", "depth_scale")}
+            points, name = self.registrar.load(path, label, factor, **load)
             auto = self.registrar.auto_voxel
-            return points, name, self.registrar.cloud_scale(points, name) if auto else None
+            size = self.registrar.cloud_scale(points, name) if auto else None
+            return points, name, size, key
 
-        cloud, cached = self.cache.get(("cloud", path.resolve()), read)
+        cloud, cached = self.cache.get(key, read)
         timings["load"] = timings.get("load", 0.0) + (
             0.0 if cached else time.perf_counter() - start
         )
         return cloud
 
-    def _features(self, cloud, path: Path, voxel: tuple, timings: dict, stage: str):
+    def _features(self, cloud, voxel: tuple, timings: dict, stage: str):
         """Features at ``voxel``, ``(voxel_size, refine_voxel, keep)`` (None, None, 1.0:
-        the registrar's)."""
+        the registrar's); their ``scale`` is the target's factor (T in the target's units)."""
         start = time.perf_counter()
-        points, name, _ = cloud
+        points, name, _, key = cloud
+        units = self.load["factors"][0][1]
         feats, cached = self.cache.get(
-            ("features", path.resolve(), voxel),
-            lambda: self.registrar.extract_points(points, self.load["scale"], name, *voxel),
+            ("features", key, voxel),
+            lambda: self.registrar.extract_points(points, units, name, *voxel),
         )
         timings[stage] = 0.0 if cached else time.perf_counter() - start
         return feats
@@ -455,9 +461,12 @@ class _PairRunner:
             message = " ".join(str(exc).split()) or type(exc).__name__
             return _record(entry, output, FAILED, message)
         passed = result.confidence >= self.min_confidence
+        factors, factors_given = self.load["factors"]
         run = {
             "min_confidence": self.min_confidence,
             "scale": self.load["scale"],
+            "factors": factors,
+            "factors_given": factors_given,
             "device": self.device,
             "started": time.perf_counter(),
         }

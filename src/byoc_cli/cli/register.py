@@ -30,8 +30,10 @@ from byoc_cli.cli.output import (
 )
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
+    cloud_factors,
     format_length,
     input_options,
+    register_pair,
     registrar,
     registration_report,
 )
@@ -45,6 +47,8 @@ class RegisterOptions:
     """The options of ``register`` besides the clouds, the outputs and the recipe's."""
 
     scale: float | None
+    source_scale: float | None
+    target_scale: float | None
     intrinsics: Path | None
     depth_scale: float
     device: str
@@ -116,14 +120,16 @@ def register(
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
 
     made = registrar(recipe, o.device)
-    result = made.register(
-        source, target, scale=o.scale, intrinsics=o.intrinsics, depth_scale=o.depth_scale
-    )
+    factors, factors_given = cloud_factors(options)
+    load = {"intrinsics": o.intrinsics, "depth_scale": o.depth_scale}
+    result = register_pair(made, source, target, factors, load)
     min_confidence = recipe.gate.min_confidence
     passed = result.confidence >= min_confidence
     run = {
         "min_confidence": min_confidence,
         "scale": o.scale,
+        "factors": factors,
+        "factors_given": factors_given,
         "device": o.device,
         "started": started,
     }
@@ -134,10 +140,12 @@ def register(
         if aligned is not None:
             with warnings.catch_warnings():  # read again: its warnings were shown once
                 warnings.simplefilter("ignore")
-                points = load_cloud(
-                    source, intrinsics=o.intrinsics, depth_scale=o.depth_scale, scale=o.scale
-                )
-            moved = (points / (o.scale or 1.0)) @ T[:3, :3].T + T[:3, 3]
+                src, tgt = factors
+                if src == tgt:  # the source in its own units, as read
+                    points = load_cloud(source, scale=src, **load) / (src or 1.0)
+                else:  # the source brought into the target's units
+                    points = load_cloud(source, scale=src / tgt, **load)
+            moved = points @ T[:3, :3].T + T[:3, 3]
             if is_stdout(aligned):
                 write_stdout_bytes(write_ply(None, moved))
             else:
