@@ -258,7 +258,7 @@ class Registrar:
         scale: float | None = None,
         label: str | None = None,
         intrinsics: str | os.PathLike[str] | None = None,
-        depth_scale: float = 1000.0,
+        depth_scale: float | None = None,
         voxel_size: float | None = None,
     ) -> Features:
         """Features of one cloud (an ``(N, 3)`` array in metres, or a file).
@@ -268,7 +268,8 @@ class Registrar:
             scale: multiply the coordinates by this first (None: check they look like metres,
                 unless the voxel is auto).
             label: how errors name the cloud (default: its path, or ``"cloud"``).
-            intrinsics, depth_scale: for depth-image files.
+            intrinsics, depth_scale: for depth-image files (depth_scale None: the layout's
+                around the file, else 1000; :func:`~byoc_cli.api_types.depth_scale_of`).
             voxel_size: this cloud's voxel (a pair's :meth:`choose_voxel`); None: the
                 registrar's, or with ``"auto"`` the choice for this cloud alone.
 
@@ -590,7 +591,7 @@ class Registrar:
         *,
         scale: float | None = None,
         intrinsics: str | os.PathLike[str] | None = None,
-        depth_scale: float = 1000.0,
+        depth_scale: float | None = None,
         **settings: Any,
     ) -> Registration:
         """Read both clouds, extract their features and :meth:`match` them.

@@ -494,3 +494,29 @@ def test_each_clouds_factor_to_metres(options, factors):
     from byoc_cli.cli.pairwise import cloud_factors
 
     assert cloud_factors(options) == factors
+
+
+@pytest.mark.realdata
+def test_tum_depth_images_read_the_depth_scale_of_their_layout(runner, shared_data, tmp_path):
+    """fr1_xyz's PNGs beside depth.txt: TUM's 5000 without --depth-scale (the default 1000 made
+    T's translation 5 times too long); a scale that puts the median depth outside 0.1-20 m is
+    one line naming --depth-scale."""
+    root = shared_data / "rgbd" / "tum_fr1_xyz"
+    frames = sorted((root / "depth").iterdir())
+    pair = [str(frames[0]), str(frames[5]), "--intrinsics", str(root / "intrinsics.json")]
+    args = ["register", *pair, "--features", "fpfh"]
+    runs = {}
+    for name, extra in (("layout", []), ("given", ["--depth-scale", "5000"])):
+        out, report = tmp_path / f"{name}.txt", tmp_path / f"{name}.json"
+        res = runner.invoke(cli, [*args, *extra, "-o", str(out), "--json", str(report)])
+        assert res.exit_code == 0, res.output
+        runs[name] = (out.read_bytes(), json.loads(report.read_text()))
+    assert runs["layout"][0] == runs["given"][0]
+    assert runs["layout"][1]["depth_scale"] == [5000.0, 5000.0]
+    assert runs["layout"][1]["unit"] == "m"
+    for wrong in ("100", "200000"):  # median depth about 30 m, then 0.03 m
+        res = runner.invoke(cli, [*args, "--depth-scale", wrong, "-o", str(tmp_path / "w.txt")])
+        assert res.exit_code == 1, res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and "--depth-scale" in lines[0] and "median depth" in lines[0]
+        assert not (tmp_path / "w.txt").exists()

@@ -467,6 +467,7 @@ class _PairRunner:
             "scale": self.load["scale"],
             "factors": factors,
             "factors_given": factors_given,
+            "depth_scale": self.load["depth_scale"],
             "device": self.device,
             "started": time.perf_counter(),
         }

@@ -52,8 +52,10 @@ input_options = apply(
     float_option(
         "--depth-scale",
         type=DEPTH_SCALE,
-        default=1000.0,
-        help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
+        default=None,
+        help="Depth-image units per metre (1000 = mm, 5000 = TUM) [default: the convention of "
+        "the dataset layout around the file (TUM: depth.txt beside depth/, 5000; 3DMatch, "
+        "ScanNet, Redwood: 1000), else 1000]. A median depth outside 0.1-20 m is refused.",
     ),
 )
 
@@ -161,6 +163,18 @@ def known_unit(result, pair: tuple[Path, Path], factors_given: bool) -> str | No
     return None
 
 
+def depth_scale_used(path: Path, given: float | None) -> float | None:
+    """The depth scale a depth-image input was read with (the option's, else its layout's,
+    else 1000: :func:`byoc_cli.api_types.depth_scale_of`); None for a point cloud."""
+    if Path(path).suffix.lower() not in DEPTH_EXTENSIONS:
+        return None
+    from byoc_cli.api_types import depth_scale_of
+
+    value, source = depth_scale_of(path, given)
+    log.info("%s: depth scale %g (%s)", path, value, source)
+    return value
+
+
 def format_length(value: float, unit: str | None) -> str:
     """A length for a message: ``5.0 cm`` or ``0.025 m`` in metres, ``51.6 input units``
     when the unit is not known (:func:`known_unit`)."""
@@ -205,6 +219,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "voxel_choice": result.voxel_choice,
         "fallback": result.fallback,
         "scale": run["scale"],
+        "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
         "source_scale": run["factors"][0],
         "target_scale": run["factors"][1],
         "max_points": result.max_points,

@@ -50,7 +50,7 @@ class RegisterOptions:
     source_scale: float | None
     target_scale: float | None
     intrinsics: Path | None
-    depth_scale: float
+    depth_scale: float | None
     device: str
 
 
@@ -130,6 +130,7 @@ def register(
         "scale": o.scale,
         "factors": factors,
         "factors_given": factors_given,
+        "depth_scale": o.depth_scale,
         "device": o.device,
         "started": started,
     }
