@@ -452,6 +452,7 @@ class Registrar:
         registration = Registration(
             T_tgt_src=T,
             confidence=result.confidence,
+            passed=result.confidence >= recipe.gate.min_confidence,
             num_inliers=result.num_inliers,
             num_correspondences=result.num_correspondences,
             inlier_ratio=result.inlier_ratio,
@@ -474,7 +475,8 @@ class Registrar:
         if self.fallback and registration.confidence < self.fallback_below:
             # the recipe of the run (its gate ran the fallback), whichever result is kept
             kept = self._second_opinion(registration, src, tgt, seed)
-            return kept._replace(recipe=registration.recipe)
+            passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
+            return kept._replace(recipe=registration.recipe, passed=passed)
         return registration
 
     def recipe_of(

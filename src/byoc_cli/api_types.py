@@ -64,6 +64,8 @@ class Registration(NamedTuple):
             (``x_tgt = R x_src + t``, column vectors), in the units of the input.
         confidence: the calibrated probability in [0, 1] that ``T_tgt_src`` is right (within
             5 deg and 10 cm at the features' scale; 0 when fewer than 3 inliers).
+        passed: ``confidence`` is at or above the gate, the recipe's ``gate.min_confidence``
+            (``byoc register`` exits 3 when it is not).
         num_inliers, num_correspondences, inlier_ratio: the verified correspondences.
         overlap: share of the kept source points that land next to a kept target point.
         num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
@@ -89,6 +91,7 @@ class Registration(NamedTuple):
 
     T_tgt_src: np.ndarray
     confidence: float
+    passed: bool
     num_inliers: int
     num_correspondences: int
     inlier_ratio: float

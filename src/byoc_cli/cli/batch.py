@@ -460,7 +460,6 @@ class _PairRunner:
             log.debug("pair on line %d failed", entry.line, exc_info=True)
             message = " ".join(str(exc).split()) or type(exc).__name__
             return _record(entry, output, FAILED, message)
-        passed = result.confidence >= self.min_confidence
         factors, factors_given = self.load["factors"]
         run = {
             "min_confidence": self.min_confidence,
@@ -474,7 +473,7 @@ class _PairRunner:
         report = registration_report(result, self.registrar, (entry.source, entry.target), run)
         del report["timings_s"]["command"]
         report["timings_s"]["pair"] = seconds
-        return {**_record(entry, output, OK if passed else LOW_CONFIDENCE), **report}
+        return {**_record(entry, output, OK if result.passed else LOW_CONFIDENCE), **report}
 
 
 class _Summary:

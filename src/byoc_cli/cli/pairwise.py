@@ -213,7 +213,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "confidence": result.confidence,
         "cues": result.cues,
         "min_confidence": run["min_confidence"],
-        "passed": result.confidence >= run["min_confidence"],
+        "passed": result.passed,
         "voxel_size": result.voxel_size,
         "unit": known_unit(result, pair, run["factors_given"]),
         "voxel_choice": result.voxel_choice,

@@ -124,7 +124,6 @@ def register(
     load = {"intrinsics": o.intrinsics, "depth_scale": o.depth_scale}
     result = register_pair(made, source, target, factors, load)
     min_confidence = recipe.gate.min_confidence
-    passed = result.confidence >= min_confidence
     run = {
         "min_confidence": min_confidence,
         "scale": o.scale,
@@ -159,7 +158,7 @@ def register(
     if not is_quiet(False):
         seconds = report["timings_s"]["command"]
         click.echo(summary_line(source, target, result, seconds, report["unit"]), err=True)
-    if not passed:
+    if not result.passed:
         click.echo(
             f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
             f"{min_confidence:g}: T is likely wrong (written all the same)",
