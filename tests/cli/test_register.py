@@ -452,6 +452,12 @@ def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights,
         res = runner.invoke(cli, quiet)
         assert res.exit_code == 0 and res.stderr == ""
         assert len(res.stdout.strip().splitlines()) == 4
+    # below the gate: a line says so, and -q leaves only the exit code and T
+    strict = [*args, "-o", "-", "--min-confidence", "1"]
+    res = runner.invoke(cli, strict)
+    assert res.exit_code == 3 and "is below --min-confidence 1" in res.stderr
+    res = runner.invoke(cli, [*strict, "-q"])
+    assert (res.exit_code, res.stderr) == (3, "") and len(res.stdout.splitlines()) == 4
 
 
 def test_dev_stdout_is_stdout_and_dev_stderr_is_refused(runner, random_weights, tmp_path):

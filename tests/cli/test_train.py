@@ -101,6 +101,8 @@ def test_config_precedence_end_to_end(shared_data, tmp_path):
         ["--config", str(cfg), "--lr", "0.0005", "--out", str(run), "--quiet", "--device", "cpu"]
     )
     assert result.exit_code == 0, result.stderr
+    assert result.stderr == ""  # --quiet: errors only; the result is the stdout line
+    assert len(result.stdout.splitlines()) == 1
     saved = json.loads((run / "config.json").read_text())
     assert saved["config"]["lr"] == 0.0005 and saved["config"]["steps"] == 2
     assert saved["config"]["seed"] == 8 and "byoc_cli_version" in saved
@@ -144,7 +146,6 @@ def test_validation_on_posed_video_is_logged_plotted_and_summarised(shared_data,
             "cpu",
             "--out",
             str(run),
-            "--quiet",
         ]
     )
     assert result.exit_code == 0, result.stderr
@@ -318,8 +319,9 @@ def test_defaults_fine_tune_the_shipped_weights_and_bar_and_summary_agree(
     shared_data, tmp_path, monkeypatch
 ):
     """``byoc train --rgbd-dir SEQ --steps 3 --out run``, no other flag: the shipped recipe
-    (self-posed, a fine-tune of the shipped weights), which learns on a CPU; the progress
-    bar ends on the loss the summary reports."""
+    (self-posed, a fine-tune of the shipped weights), which learns on a CPU; off a terminal
+    the progress is plain lines (the self-posed pairs' stages first), and the one metrics
+    line's loss is the summary's."""
     import re
 
     monkeypatch.chdir(tmp_path)
@@ -329,9 +331,11 @@ def test_defaults_fine_tune_the_shipped_weights_and_bar_and_summary_agree(
     config = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
     assert config["variant"] == "self-posed" and config["init_weights"] == "shipped"
     assert (config["batch_size"], config["lr"], config["crop_radius"]) == (2, 1e-4, 0.6)
-    bar = re.findall(r"3/3 loss (\d+\.\d{4})", result.stderr)
-    summary = re.findall(r"trained 3 steps in run: loss (\S+) -> (\S+) ", result.stderr)
-    assert bar and summary and bar[-1] == summary[0][1], result.stderr
+    lines = result.stderr.splitlines()
+    assert lines[0].startswith("byoc: self-posed pairs: reading frames 1/"), lines[0]
+    bar = re.findall(r"step 3: loss (\d+\.\d{4})", result.stderr)
+    summary = re.findall(r"trained 3 steps in run: loss (\S+) \(the mean of its one", lines[-1])
+    assert bar and summary and bar[-1] == summary[0], result.stderr
     records = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     last = [json.loads(r) for r in records if '"train"' in r][-1]
     assert f"{last['loss']:.4f}" == bar[-1]

@@ -258,19 +258,19 @@ def register_batch(
                         click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
     seconds = time.perf_counter() - started
     skipped_below = sum(1 for *_, was_skipped in below if was_skipped)
-    if not is_quiet(False):
+    if not is_quiet(False):  # -q: the failures' lines (errors), the summary file and the code
         for line in _below_gate_lines(below, gate, summary):
             click.echo(line, err=True)
-    skipped_note = ""
-    if skipped_below:
-        skipped_note = f"; {skipped_below} of them below --min-confidence as recorded"
-    click.echo(
-        f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
-        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists{skipped_note}); "
-        f"summary {summary}; {len(todo)} pairs in {seconds:.1f} s "
-        f"({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
-        err=True,
-    )
+        skipped_note = ""
+        if skipped_below:
+            skipped_note = f"; {skipped_below} of them below --min-confidence as recorded"
+        click.echo(
+            f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
+            f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists{skipped_note}); "
+            f"summary {summary}; {len(todo)} pairs in {seconds:.1f} s "
+            f"({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
+            err=True,
+        )
     if counts[FAILED]:
         raise SystemExit(EXIT_ERROR)
     raise SystemExit(EXIT_LOW_CONFIDENCE if below else EXIT_OK)

@@ -155,15 +155,17 @@ def register(
             write_stdout(format_transform(T))
         elif output is not None:
             atomic_write_text(output, format_transform(T))
-    if not is_quiet(False):
+    quiet = is_quiet(False)  # -q: errors and the result (T, the exit code) only
+    if not quiet:
         seconds = report["timings_s"]["command"]
         click.echo(summary_line(source, target, result, seconds, report["unit"]), err=True)
-    if not result.passed:
+    if not result.passed and not quiet:
         click.echo(
             f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
             f"{min_confidence:g}: T is likely wrong (written all the same)",
             err=True,
         )
+    if not result.passed:
         raise SystemExit(EXIT_LOW_CONFIDENCE)
 
 

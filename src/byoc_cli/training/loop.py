@@ -77,8 +77,14 @@ class StepInfo(NamedTuple):
 
 @dataclass
 class TrainCallbacks:
-    """Hooks for progress display (called on rank 0 only). All optional."""
+    """Hooks for progress display (called on rank 0 only). All optional.
 
+    ``on_stage(stage, done, total)`` reports the work a variant does before its steps can
+    run (``self-posed``: its pseudo-poses, ``frames``, ``odometry`` and ``pairs``), so that a
+    run is never silent for minutes; ``on_start(step, total)`` then opens the steps.
+    """
+
+    on_stage: Callable[[str, int, int], None] | None = None
     on_start: Callable[[int, int], None] | None = None
     on_step: Callable[[StepInfo], None] | None = None
     on_log: Callable[[dict[str, Any]], None] | None = None
@@ -101,6 +107,7 @@ class TrainResult:
         weights_sha256: SHA-256 of the weights file.
         steps: steps done.
         first_loss, last_loss: mean training loss over the first and last log windows.
+        loss_lines: the ``train`` records (log windows) of the run folder.
         validation: the last validation metrics (empty without ``val_dir``).
         initial_validation: validation before the first step of the run (random init).
     """
@@ -111,6 +118,7 @@ class TrainResult:
     steps: int
     first_loss: float | None = None
     last_loss: float | None = None
+    loss_lines: int = 0
     validation: dict[str, float] = field(default_factory=dict)
     initial_validation: dict[str, float] = field(default_factory=dict)
 
@@ -163,9 +171,15 @@ class TrainTask(Protocol):
     def restore_position(self, state: dict[str, Any]) -> None:
         """Continue the data order from a checkpoint's :meth:`data_position`."""
 
-    def prepare(self, step: int, records: RunRecords) -> None:
+    def prepare(
+        self,
+        step: int,
+        records: RunRecords,
+        progress: Callable[[str, int, int], None] | None = None,
+    ) -> None:
         """Make the data of the step after ``step`` completed steps ready (called before the
-        first step, then before every step); may write the variant's own records."""
+        first step, then before every step); may write the variant's own records.
+        ``progress(stage, done, total)`` hears of long work (:class:`TrainCallbacks`)."""
 
     def next_batch(self) -> Any:
         """The next training batch."""
@@ -375,7 +389,7 @@ class _Run:
     # ------------------------------------------------------------------ the loop
     def run(self) -> TrainResult:
         config, info, task = self.config, self.info, self.task
-        task.prepare(self.step, self.records)
+        task.prepare(self.step, self.records, self._stage)
         if info.is_main:
             self.callbacks.call("on_start", self.step, config.steps)
             self._start_validation()
@@ -393,6 +407,11 @@ class _Run:
         self._release()
         return self.result
 
+    def _stage(self, stage: str, done: int, total: int) -> None:
+        """A task's progress before its steps (rank 0 reports it)."""
+        if self.info.is_main:
+            self.callbacks.call("on_stage", stage, done, total)
+
     def _release(self) -> None:
         """End a distributed run together: every process waits for rank 0's export and
         drops its DDP wrapper before the process group is destroyed (a process that tears
@@ -408,7 +427,7 @@ class _Run:
         rate = 0.0
         t_rate, rate_steps = time.perf_counter(), 0
         while self.step < config.steps:
-            task.prepare(self.step, self.records)
+            task.prepare(self.step, self.records, self._stage)
             batch = task.next_batch()
             with step_guard(task.model, self.step + 1, config.lr):
                 loss, values = task.step(self.module, batch)
@@ -463,6 +482,7 @@ class _Run:
         if train_records:
             result.first_loss = train_records[0]["loss"]
             result.last_loss = train_records[-1]["loss"]
+        result.loss_lines = len(train_records)
         self._plot(records)
         metrics = {}
         if result.last_loss is not None:
