@@ -264,3 +264,138 @@ def test_features_from_a_share_of_the_points_index_the_whole_cloud():
     assert part.point_index.max() >= len(pts) * 0.5  # indices of the whole cloud, not the share
     assert len(part.points) < len(full.points)
     np.testing.assert_array_equal(part.point_index, again.point_index)  # seeded
+
+
+def test_a_loose_depth_image_reads_millimetres_and_refuses_an_implausible_depth(tmp_path):
+    from PIL import Image
+
+    from byoc_cli.api_types import depth_scale_of, load_cloud
+    from byoc_cli.errors import InputError
+
+    K = tmp_path / "K.txt"
+    K.write_text("50 0 32\n0 50 24\n0 0 1\n")
+    near, far = tmp_path / "near.png", tmp_path / "far.png"
+    Image.fromarray(np.full((48, 64), 1500, np.uint16)).save(near)
+    Image.fromarray(np.full((48, 64), 40, np.uint16)).save(far)
+    assert depth_scale_of(near) == (1000.0, "default")
+    assert np.median(load_cloud(near, intrinsics=K)[:, 2]) == pytest.approx(1.5)
+    with pytest.raises(InputError, match=r"median depth 0\.04 m .*--depth-scale"):
+        load_cloud(far, intrinsics=K)
+    assert np.median(load_cloud(far, intrinsics=K, depth_scale=40)[:, 2]) == pytest.approx(1.0)
+
+
+# ------------------------------------------------------------------ the documented API
+
+DOCS_API = Path(__file__).resolve().parents[1] / "docs" / "pipelines.md"
+
+
+def _documented_signatures() -> list[str]:
+    lines = DOCS_API.read_text().splitlines()
+    start = lines.index("<!-- api-signatures -->") + 2  # the marker, then the fence
+    end = lines.index("```", start)
+    return lines[start:end]
+
+
+def _code_object(name: str):
+    from byoc_cli import api
+
+    obj = api
+    for part in name.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _check_signature(line: str) -> None:
+    import ast
+    import inspect
+
+    from byoc_cli import api
+
+    head, _, returns = line.partition(" -> ")
+    name, _, params = head.partition("(")
+    documented = ast.parse(f"def f({params[:-1]}): pass").body[0].args
+    actual = inspect.signature(_code_object(name))
+    if "." in name:  # a method, read from its class: without self
+        actual = actual.replace(parameters=list(actual.parameters.values())[1:])
+    kinds = inspect.Parameter
+    doc_params = (
+        [(a, kinds.POSITIONAL_OR_KEYWORD) for a in documented.args]
+        + ([(documented.vararg, kinds.VAR_POSITIONAL)] if documented.vararg else [])
+        + [(a, kinds.KEYWORD_ONLY) for a in documented.kwonlyargs]
+        + ([(documented.kwarg, kinds.VAR_KEYWORD)] if documented.kwarg else [])
+    )
+    defaults = dict(
+        zip([a.arg for a in documented.args][::-1], documented.defaults[::-1], strict=False)
+    )
+    defaults.update(
+        {
+            a.arg: d
+            for a, d in zip(documented.kwonlyargs, documented.kw_defaults, strict=True)
+            if d is not None
+        }
+    )
+    assert [(a.arg, k) for a, k in doc_params] == [
+        (p.name, p.kind) for p in actual.parameters.values()
+    ], line
+    for parameter in actual.parameters.values():
+        node = defaults.get(parameter.name)
+        if node is None:
+            assert parameter.default is inspect.Parameter.empty, (line, parameter.name)
+        elif isinstance(node, ast.Name) and node.id == "RECIPE":
+            assert parameter.default is api._RECIPE, (line, parameter.name)
+        else:
+            assert ast.literal_eval(node) == parameter.default, (line, parameter.name)
+            assert type(ast.literal_eval(node)) is type(parameter.default), (line, parameter.name)
+    if returns:
+        annotation = str(actual.return_annotation)
+        assert annotation.split(".")[-1] == returns, (line, annotation)
+
+
+def test_the_documented_signatures_are_the_codes():
+    lines = _documented_signatures()
+    names = [line.partition("(")[0] for line in lines]
+    assert set(names) >= {n for n in byoc_cli._API if n not in ("Features", "Registration")}
+    assert {"Registrar.extract", "Registrar.match", "Registrar.register"} <= set(names)
+    for line in lines:
+        _check_signature(line)
+
+
+def _bullet(start: str) -> str:
+    text = " ".join(DOCS_API.read_text().split())
+    begin = text.index(start) + len(start)
+    return text[begin : text.index(" * ", begin)]
+
+
+def test_the_documented_keywords_and_fields_are_the_codes():
+    import re
+
+    from byoc_cli import api
+
+    def names(text: str) -> list[str]:
+        return re.findall(r"`([A-Za-z_][A-Za-z_0-9]*)`", text)
+
+    register_keys = {*api._REGISTRAR_KEYS, *api._LOAD_KEYS, *api._MATCH_KEYS}
+    assert set(names(_bullet("* `register`'s `overrides`:"))) - {"Registrar"} == register_keys
+    extract = set(names(_bullet("* `extract_features`' `overrides`:")))
+    assert extract == {*api._REGISTRAR_KEYS, *api._LOAD_KEYS} - {"fallback"}
+    fields = _bullet("* A `Registration` (a NamedTuple) holds")
+    registration, _, features = fields.partition("; a `Features` holds")
+    documented = [n for n in names(registration) if n not in ("byoc", "register")]
+    documented = [n for n in documented if n != "gate"]
+    assert documented[:3] == ["T_tgt_src", "confidence", "passed"]
+    assert set(documented) - {"min_confidence"} == set(api.Registration._fields)
+    assert set(names(features)) == set(api.Features._fields)
+
+
+def test_a_registration_says_whether_it_passed_the_gate():
+    rng = np.random.default_rng(0)
+    n = 3000
+    pts = rng.uniform(-1, 1, size=(n, 3))
+    axis = rng.integers(0, 3, size=n)
+    pts[np.arange(n), axis] = np.sign(pts[np.arange(n), axis])
+    src, tgt = pts * np.array([1.5, 1.0, 0.8]), pts * np.array([1.5, 1.0, 0.8]) + 0.05
+    common = {"features": "fpfh", "refine": "none", "seed": 0}
+    result = byoc_cli.register(src, tgt, **common)
+    assert result.passed == (result.confidence >= 0.45)
+    strict = byoc_cli.Registrar(features="fpfh", fallback_below=1.0).register(src, tgt, seed=0)
+    assert strict.confidence < 1.0 and strict.passed is False

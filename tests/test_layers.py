@@ -198,7 +198,8 @@ def _command_modules() -> set[str]:
         if isinstance(node, ast.Assign) and any(
             isinstance(t, ast.Name) and t.id == "_COMMANDS" for t in node.targets
         ):
-            found = {v.elts[0].value for v in node.value.values}  # ("module", "attr")
+            # CommandEntry("module", "attr", "short help")
+            found = {v.args[0].value for v in node.value.values}
     assert found, "cli/main.py has no _COMMANDS"
     return found
 

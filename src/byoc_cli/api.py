@@ -258,7 +258,7 @@ class Registrar:
         scale: float | None = None,
         label: str | None = None,
         intrinsics: str | os.PathLike[str] | None = None,
-        depth_scale: float = 1000.0,
+        depth_scale: float | None = None,
         voxel_size: float | None = None,
     ) -> Features:
         """Features of one cloud (an ``(N, 3)`` array in metres, or a file).
@@ -268,7 +268,8 @@ class Registrar:
             scale: multiply the coordinates by this first (None: check they look like metres,
                 unless the voxel is auto).
             label: how errors name the cloud (default: its path, or ``"cloud"``).
-            intrinsics, depth_scale: for depth-image files.
+            intrinsics, depth_scale: for depth-image files (depth_scale None: the layout's
+                around the file, else 1000; :func:`~byoc_cli.api_types.depth_scale_of`).
             voxel_size: this cloud's voxel (a pair's :meth:`choose_voxel`); None: the
                 registrar's, or with ``"auto"`` the choice for this cloud alone.
 
@@ -451,6 +452,7 @@ class Registrar:
         registration = Registration(
             T_tgt_src=T,
             confidence=result.confidence,
+            passed=result.confidence >= recipe.gate.min_confidence,
             num_inliers=result.num_inliers,
             num_correspondences=result.num_correspondences,
             inlier_ratio=result.inlier_ratio,
@@ -473,7 +475,8 @@ class Registrar:
         if self.fallback and registration.confidence < self.fallback_below:
             # the recipe of the run (its gate ran the fallback), whichever result is kept
             kept = self._second_opinion(registration, src, tgt, seed)
-            return kept._replace(recipe=registration.recipe)
+            passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
+            return kept._replace(recipe=registration.recipe, passed=passed)
         return registration
 
     def recipe_of(
@@ -590,7 +593,7 @@ class Registrar:
         *,
         scale: float | None = None,
         intrinsics: str | os.PathLike[str] | None = None,
-        depth_scale: float = 1000.0,
+        depth_scale: float | None = None,
         **settings: Any,
     ) -> Registration:
         """Read both clouds, extract their features and :meth:`match` them.

@@ -14,6 +14,10 @@ if TYPE_CHECKING:
 
 #: inputs read as depth images (they need intrinsics)
 DEPTH_EXTENSIONS = (".png", ".tif", ".tiff")
+#: the depth scale of a depth image outside any known layout (millimetres)
+DEFAULT_DEPTH_SCALE = 1000.0
+#: the median depth any depth sensor sees, in metres: outside it the depth scale is wrong
+PLAUSIBLE_DEPTH = (0.1, 20.0)
 
 
 class Features(NamedTuple):
@@ -60,6 +64,8 @@ class Registration(NamedTuple):
             (``x_tgt = R x_src + t``, column vectors), in the units of the input.
         confidence: the calibrated probability in [0, 1] that ``T_tgt_src`` is right (within
             5 deg and 10 cm at the features' scale; 0 when fewer than 3 inliers).
+        passed: ``confidence`` is at or above the gate, the recipe's ``gate.min_confidence``
+            (``byoc register`` exits 3 when it is not).
         num_inliers, num_correspondences, inlier_ratio: the verified correspondences.
         overlap: share of the kept source points that land next to a kept target point.
         num_points_src, num_points_tgt: kept (voxelised) points of each cloud.
@@ -85,6 +91,7 @@ class Registration(NamedTuple):
 
     T_tgt_src: np.ndarray
     confidence: float
+    passed: bool
     num_inliers: int
     num_correspondences: int
     inlier_ratio: float
@@ -127,11 +134,54 @@ def load_weights(path: str | os.PathLike[str] | None = None) -> LoadedWeights:
     return _load(path)
 
 
+def depth_scale_of(path: str | os.PathLike[str], depth_scale: float | None = None):
+    """The depth scale (raw units per metre) to read the depth image ``path`` with, and where
+    it comes from: ``depth_scale`` when given (``"given"``), else the convention of the
+    dataset layout around the file (``"tum layout of SEQ"``: TUM's ``depth.txt`` beside
+    ``depth/`` is 5000; 3DMatch, ScanNet and Redwood are 1000), else
+    :data:`DEFAULT_DEPTH_SCALE` (``"default"``).
+
+    Returns:
+        ``(depth_scale, source)``.
+    """
+    if depth_scale is not None:
+        return float(depth_scale), "given"
+    from byoc_cli.io.rgbd.registry import layout_of_depth_image
+
+    found = layout_of_depth_image(Path(path))
+    if found is None:
+        return DEFAULT_DEPTH_SCALE, "default"
+    layout, folder = found
+    return float(layout.depth_scale), f"{layout.name} layout of {folder}"
+
+
+def check_depth_range(points: np.ndarray, path: Any, depth_scale: float) -> None:
+    """Refuse depth-image points whose median depth no depth sensor sees
+    (:data:`PLAUSIBLE_DEPTH`): the depth scale is wrong.
+
+    Raises:
+        InputError: naming ``path``, the median depth and ``--depth-scale``.
+    """
+    from byoc_cli.errors import InputError
+
+    if len(points) == 0:
+        return
+    median = float(np.median(points[:, 2]))
+    low, high = PLAUSIBLE_DEPTH
+    if not low <= median <= high:
+        raise InputError(
+            path,
+            f"median depth {median:.3g} m at --depth-scale {depth_scale:g} (units per metre) "
+            f"is outside what depth sensors see ({low:g}-{high:g} m): give this data's "
+            "--depth-scale (1000 for millimetres, 5000 for TUM)",
+        )
+
+
 def load_cloud(
     path: str | os.PathLike[str],
     *,
     intrinsics: str | os.PathLike[str] | None = None,
-    depth_scale: float = 1000.0,
+    depth_scale: float | None = None,
     scale: float | None = None,
 ) -> np.ndarray:
     """Read a point cloud (.ply, .pcd, .xyz, .pts, .npy) or a depth image as ``(N, 3)`` metres.
@@ -141,7 +191,8 @@ def load_cloud(
     Args:
         path: the file.
         intrinsics: for depth images (.png, .tif): Open3D intrinsics JSON or a 3x3 text matrix.
-        depth_scale: depth-image units per metre.
+        depth_scale: depth-image units per metre; None: the convention of the dataset layout
+            around the file, else 1000 (:func:`depth_scale_of`).
         scale: multiply the coordinates by this (0.001 for millimetres); None checks that the
             cloud looks like metres.
 
@@ -149,8 +200,9 @@ def load_cloud(
         ``(N, 3)`` float64 (times ``scale`` when given).
 
     Raises:
-        InputError: unreadable or malformed file, a depth image without intrinsics, or (no
-            ``scale``) a cloud that looks like millimetres.
+        InputError: unreadable or malformed file, a depth image without intrinsics or whose
+            median depth is outside 0.1-20 m (a wrong depth scale), or (no ``scale``) a cloud
+            that looks like millimetres.
     """
     from byoc_cli.errors import InputError
     from byoc_cli.io import check_units, read_depth_cloud, read_point_cloud
@@ -159,7 +211,9 @@ def load_cloud(
     if path.suffix.lower() in DEPTH_EXTENSIONS:
         if intrinsics is None:
             raise InputError(path, "is a depth image: intrinsics are required (--intrinsics)")
+        depth_scale, _ = depth_scale_of(path, depth_scale)
         loaded = read_depth_cloud(path, Path(intrinsics), depth_scale=depth_scale)
+        check_depth_range(loaded.points, path, depth_scale)
     else:
         loaded = read_point_cloud(path)
     if loaded.num_nonfinite_dropped:

@@ -39,6 +39,25 @@ MAX_LR = 1.0
 MIN_POSITIVE = 1e-12
 MAX_POSITIVE = 1e12
 
+#: The robust estimators' defaults (the registration recipe's; read without torch by the
+#: commands' help): candidates of randomized Procrustes and correspondences per candidate
+#: (the paper's section 3.1); RANSAC's limits, at most this many minimal sets, fewer once the
+#: best inlier share makes this confidence of having drawn an all-inlier set.
+NUM_SUBSETS = 100
+SUBSET_SIZE = 20
+MAX_ITERATIONS = 100_000
+CONFIDENCE = 0.999
+#: The largest values of the registration recipe's counts (a file or an option): points per
+#: cloud in matching and matches per direction (a cloud file holds at most 30 million points),
+#: RANSAC's minimal sets (100 times the default), randomized Procrustes' candidates and their
+#: size (their product, at most 10 million correspondences, is one batched solve).
+MAX_MATCH_POINTS = 30_000_000
+MAX_RANSAC_ITERATIONS = 10_000_000
+MAX_NUM_SUBSETS = 10_000
+MAX_SUBSET_SIZE = 1_000
+#: The largest inlier threshold, as a multiple of the voxel.
+MAX_INLIER_FACTOR = 100.0
+
 #: Data-loading worker processes per core this process may run on.
 WORKERS_PER_CORE = 2
 

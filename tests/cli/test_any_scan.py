@@ -55,15 +55,22 @@ def test_scaled_copies_register_with_no_flags(demo, tmp_path, scale):
     extent = float(np.max(tgt.max(0) - tgt.min(0))) * scale
     assert rot < 5.0 and trans < 0.1 * extent, (rot, trans, extent)
     choice = report["voxel_choice"]
-    assert choice["voxel_size"] == pytest.approx(report["voxel_size_m"])
+    assert choice["voxel_size"] == pytest.approx(report["voxel_size"])
+    assert report["unit"] is None  # the input's own units: the auto voxel scaled them
     assert choice["voxel_size"] / scale == pytest.approx(0.025, rel=0.1)
     assert "scaled" in choice["reason"]
 
 
-def test_millimetres_need_no_flag(demo, tmp_path):
+def test_millimetres_need_no_flag_and_nothing_claims_metres(demo, tmp_path):
     src, tgt, T_gt = demo
-    result, _ = _register(tmp_path, src * 1000, tgt * 1000)
+    result, report = _register(tmp_path, src * 1000, tgt * 1000)
     assert result.exit_code == 0, result.output
+    assert report["unit"] is None and "voxel_size_m" not in report
+    assert report["voxel_size"] == pytest.approx(25.8, rel=0.05)
+    assert report["inlier_threshold"] == pytest.approx(2 * report["voxel_size"])
+    line = result.stderr.strip()
+    assert "input units, voxel 25.81 input units" in line, line
+    assert " cm" not in line and " m," not in line
     T = read_transform(tmp_path / "T.txt")
     T_gt_mm = T_gt.copy()
     T_gt_mm[:3, 3] *= 1000
@@ -85,7 +92,8 @@ def test_an_explicit_voxel_size_turns_auto_off(demo, tmp_path):
     src, tgt, _ = demo
     result, report = _register(tmp_path, src, tgt, "--voxel-size", "0.03")
     assert result.exit_code in (0, 3), result.output
-    assert report["voxel_size_m"] == 0.03 and report["voxel_choice"] is None
+    assert report["voxel_size"] == 0.03 and report["voxel_choice"] is None
+    assert report["unit"] is None  # a number given is in the units of the points
 
 
 def _noise(n: int, seed: int, size: float = 3.0) -> np.ndarray:
@@ -138,3 +146,46 @@ def test_an_unrefined_right_result_passes(demo, tmp_path):
     rot, trans = _errors(read_transform(tmp_path / "T.txt"), T_gt)
     assert rot < 5.0 and trans < 0.10
     assert report["refine"] == "none" and 0.45 <= report["confidence"] < 1.0
+
+
+def test_mixed_units_are_refused_naming_the_per_cloud_options(demo, tmp_path):
+    src, tgt, _ = demo
+    result, _ = _register(tmp_path, src * 1000, tgt)
+    assert result.exit_code == 1, result.output
+    line = result.stderr.strip().splitlines()[-1]
+    assert "same units?" in line and "--source-scale" in line and "--target-scale" in line
+
+
+def test_a_millimetre_source_and_a_metre_target_register_with_source_scale(demo, tmp_path):
+    src, tgt, T_gt = demo
+    aligned = tmp_path / "aligned.ply"
+    flags = ("--source-scale", "0.001", "--aligned", str(aligned))
+    result, report = _register(tmp_path, src * 1000, tgt, *flags)
+    assert result.exit_code == 0, result.output
+    T = read_transform(tmp_path / "T.txt")
+    rot, trans = _errors(T, T_gt)
+    assert rot < 5.0 and trans < 0.10, (rot, trans)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)  # rigid: the scale is not in T
+    assert (report["source_scale"], report["target_scale"], report["scale"]) == (0.001, 1.0, None)
+    moved = read_point_cloud(aligned).points  # the source, in metres, in the target's frame
+    expected = src @ T[:3, :3].T + T[:3, 3]
+    assert np.allclose(moved, expected, atol=1e-6)
+    # register-batch gives the same bytes
+    (tmp_path / "pairs.txt").write_text("s.ply t.ply batch.txt\n")
+    batch = CliRunner().invoke(
+        cli, ["register-batch", str(tmp_path / "pairs.txt"), "--source-scale", "0.001"]
+    )
+    assert batch.exit_code == 0, batch.output
+    assert (tmp_path / "batch.txt").read_bytes() == (tmp_path / "T.txt").read_bytes()
+
+
+def test_a_metre_source_and_a_millimetre_target_give_t_in_millimetres(demo, tmp_path):
+    src, tgt, T_gt = demo
+    result, report = _register(tmp_path, src, tgt * 1000, "--target-scale", "0.001")
+    assert result.exit_code == 0, result.output
+    T = read_transform(tmp_path / "T.txt")
+    T_gt_mm = T_gt.copy()
+    T_gt_mm[:3, 3] *= 1000
+    rot, trans = _errors(T, T_gt_mm)
+    assert rot < 5.0 and trans < 100.0, (rot, trans)  # millimetres
+    assert (report["source_scale"], report["target_scale"]) == (1.0, 0.001)

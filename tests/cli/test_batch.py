@@ -123,7 +123,7 @@ def test_pairs_side_by_side_give_the_transforms_of_one_thread(
             # each fragment encoded once per voxel (and share of its points) its pairs chose,
             # also by two workers
             voxels = {
-                (s[c], s["voxel_size_m"], s["voxel_choice"]["feature_points_kept"][k])
+                (s[c], s["voxel_size"], s["voxel_choice"]["feature_points_kept"][k])
                 for s in summary
                 for k, c in enumerate(("source", "target"))
             }
@@ -208,6 +208,37 @@ def test_below_min_confidence_exits_3_and_overwrite_redoes(runner, tmp_path):
     note = summary[-1]["fallback"]
     assert note["features"] == "fpfh" and isinstance(note["used"], bool)
     assert summary[-1]["features"] == ("fpfh" if note["used"] else "byoc")
+
+
+def test_pairs_below_the_gate_are_named_and_a_rerun_that_skips_them_exits_3(runner, tmp_path):
+    from byoc_cli.cli.batch import NAMED_BELOW_GATE
+
+    rng = np.random.default_rng(2)
+    write_ply(tmp_path / "a.ply", _cube(rng))
+    write_ply(tmp_path / "b.ply", _cube(rng) + 0.05)
+    count = NAMED_BELOW_GATE + 2  # the same clouds: features computed once
+    lines = [f"a.ply b.ply t{k}.txt" for k in range(count)]
+    (tmp_path / "pairs.txt").write_text("\n".join(lines) + "\n")
+    args = ["register-batch", str(tmp_path / "pairs.txt"), *COARSE, "--min-confidence", "1"]
+    for run in ("first", "rerun"):
+        res = runner.invoke(cli, args)
+        assert res.exit_code == 3, (run, res.output)
+        named = [ln for ln in res.stderr.splitlines() if "is below --min-confidence 1" in ln]
+        assert len(named) == NAMED_BELOW_GATE, res.stderr
+        pair = f"{tmp_path / 'a.ply'} -> {tmp_path / 'b.ply'}"
+        assert named[0].startswith(f"byoc: line 1: {pair}: confidence ")
+        assert ("recorded by an earlier run" in named[0]) == (run == "rerun")
+        assert "byoc: and 2 more pairs below --min-confidence" in res.stderr
+    assert f"{count} skipped (T file exists; {count} of them below" in res.stderr
+    rerun = _summary(tmp_path / "summary.jsonl")[count:]
+    assert [s["status"] for s in rerun] == ["skipped"] * count
+    assert all(s["recorded"]["status"] == "low_confidence" for s in rerun)
+    # the recorded confidences are judged against this run's gate; -q names nothing
+    res = runner.invoke(cli, [*args[:-1], "0", "-q"])
+    assert res.exit_code == 0, res.output
+    assert res.stderr == ""  # -q: errors only (the summary file holds the result)
+    res = runner.invoke(cli, [*args, "-q"])
+    assert (res.exit_code, res.stderr) == (3, "")
 
 
 @pytest.mark.parametrize(

@@ -202,3 +202,73 @@ def test_options_given_change_the_recipe_file(tmp_path):
     assert got.fitting.estimator == PRESETS["fpfh"].fitting.estimator
     assert got.refinement.method == "none"
     assert got.gate.fallback == "none"  # the fallback is for learned features
+
+
+# ------------------------------------------------------------------ hostile recipe files
+
+#: address space of a hostile-recipe run (1 GiB): a parser that builds what the file claims
+#: fails the test, not the machine
+RECIPE_ADDRESS_SPACE = 1 << 30
+
+HOSTILE_RECIPES = {
+    "preset-array": ('preset = ["byoc"]\n', "preset must be one of byoc, fpfh (got an array)"),
+    "kind-table": ("[features]\nkind = {a = 1}\n", "features.kind must be one of byoc, fpfh"),
+    "num-subsets-2^63": (
+        f"[fitting]\nnum_subsets = {2**63 - 1}\n",
+        "fitting.num_subsets must be an integer in [1, 10000]",
+    ),
+    "subset-size-2^63": (
+        f"[fitting]\nsubset_size = {2**63 - 1}\n",
+        "fitting.subset_size must be an integer in [3, 1000]",
+    ),
+    "inlier-factor-1e308": (
+        "[fitting]\ninlier_factor = 1e308\n",
+        "fitting.inlier_factor must be a number in (0, 100]",
+    ),
+    "arrays-100000-deep": (
+        "[fitting]\nnum_subsets = " + "[" * 100_000 + "]" * 100_000 + "\n",
+        "fitting.num_subsets: nested deeper than 16 levels",
+    ),
+    "tables-50000-deep": (
+        "[gate]\nmin_confidence = " + "{a = " * 50_000 + "1" + "}" * 50_000 + "\n",
+        "gate.min_confidence: nested deeper than 16 levels",
+    ),
+    "key-of-100000-parts": (
+        ".".join(["a"] * 100_000) + " = 1\n",
+        "key 'a.a.a.a.a.a.a.a' has more than 8 dotted parts",
+    ),
+}
+
+
+def _limit_address_space() -> None:
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (RECIPE_ADDRESS_SPACE, RECIPE_ADDRESS_SPACE))
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_RECIPES))
+def test_a_hostile_recipe_is_one_line_naming_the_key_in_bounded_memory(case, tmp_path):
+    text, problem = HOSTILE_RECIPES[case]
+    path = tmp_path / "hostile.toml"
+    path.write_text(text)
+    args = ["register", "a.ply", "b.ply", "--recipe", str(path), "-o", str(tmp_path / "T.txt")]
+    done = subprocess.run(
+        [sys.executable, "-m", "byoc_cli.cli.main", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,  # a hang guard, not a measure (benchmarks/help.py-style timings: report)
+        preexec_fn=_limit_address_space,
+    )
+    assert done.returncode in (1, 2), (done.returncode, done.stderr[-2000:])
+    assert "Traceback" not in done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"byoc: error: {path}: "), lines[:3]
+    assert problem in lines[0], lines[0]
+    assert not (tmp_path / "T.txt").exists()
+
+
+def test_counts_past_the_recipes_range_are_usage_errors_naming_the_option(tmp_path):
+    for flag in ("--max-points", "--num-correspondences"):
+        result = CliRunner().invoke(cli, ["register", "a.ply", "b.ply", flag, str(2**63 - 1)])
+        assert result.exit_code == 2, result.output
+        assert f"'{flag}'" in result.stderr and "Traceback" not in result.output

@@ -94,7 +94,9 @@ def test_fpfh_registers_demo_pair(runner, demo, tmp_path):
         "inlier_ratio",
         "overlap",
         "confidence",
-        "voxel_size_m",
+        "voxel_size",
+        "inlier_threshold",
+        "unit",
         "seed",
         "timings_s",
         "weights_sha256",
@@ -330,11 +332,16 @@ def test_scale_option_returns_transform_in_input_units(runner, tmp_path):
             "0.001",
             "-o",
             str(out),
+            "--json",
+            str(tmp_path / "r.json"),
         ],
     )
     assert res.exit_code == 0, res.output
     T = read_transform(out)
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3] * 1000.0) < 50.0  # millimetres
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert (report["unit"], report["voxel_size"]) == ("m", 0.05)  # --scale: metres are known
+    assert "voxel 0.05 m" in res.stderr
 
 
 def test_usage_errors_exit_2(runner, tmp_path):
@@ -433,7 +440,7 @@ def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights,
     figures = (
         f"confidence {report['confidence']:.3f}, {report['num_inliers']}/"
         f"{report['num_correspondences']} inliers within "
-        f"{100 * report['inlier_threshold_m']:.1f} cm, voxel {report['voxel_size_m']:g} m, "
+        f"{100 * report['inlier_threshold']:.1f} cm, voxel {report['voxel_size']:g} m, "
     )
     assert figures in lines[0] and lines[0].endswith(" s")
     assert res.stdout == ""
@@ -445,6 +452,12 @@ def test_success_prints_one_line_on_stderr_silenced_by_q(runner, random_weights,
         res = runner.invoke(cli, quiet)
         assert res.exit_code == 0 and res.stderr == ""
         assert len(res.stdout.strip().splitlines()) == 4
+    # below the gate: a line says so, and -q leaves only the exit code and T
+    strict = [*args, "-o", "-", "--min-confidence", "1"]
+    res = runner.invoke(cli, strict)
+    assert res.exit_code == 3 and "is below --min-confidence 1" in res.stderr
+    res = runner.invoke(cli, [*strict, "-q"])
+    assert (res.exit_code, res.stderr) == (3, "") and len(res.stdout.splitlines()) == 4
 
 
 def test_dev_stdout_is_stdout_and_dev_stderr_is_refused(runner, random_weights, tmp_path):
@@ -470,3 +483,46 @@ def test_dev_stdout_is_stdout_and_dev_stderr_is_refused(runner, random_weights, 
         assert res.exit_code == 1 and len(lines) == 1, res.stderr
         assert lines[0].startswith(f"byoc: error: {path}: ") and phrase in lines[0]
     assert not (tmp_path / "U.txt").exists()
+
+
+@pytest.mark.parametrize(
+    ("options", "factors"),
+    [
+        ({}, ((None, None), False)),
+        ({"scale": 0.001}, ((0.001, 0.001), True)),
+        ({"source_scale": 0.001}, ((0.001, 1.0), False)),
+        ({"target_scale": 0.01}, ((1.0, 0.01), False)),
+        ({"scale": 0.001, "target_scale": 1.0}, ((0.001, 1.0), True)),
+        ({"source_scale": 0.001, "target_scale": 0.01}, ((0.001, 0.01), True)),
+    ],
+)
+def test_each_clouds_factor_to_metres(options, factors):
+    from byoc_cli.cli.pairwise import cloud_factors
+
+    assert cloud_factors(options) == factors
+
+
+@pytest.mark.realdata
+def test_tum_depth_images_read_the_depth_scale_of_their_layout(runner, shared_data, tmp_path):
+    """fr1_xyz's PNGs beside depth.txt: TUM's 5000 without --depth-scale (the default 1000 made
+    T's translation 5 times too long); a scale that puts the median depth outside 0.1-20 m is
+    one line naming --depth-scale."""
+    root = shared_data / "rgbd" / "tum_fr1_xyz"
+    frames = sorted((root / "depth").iterdir())
+    pair = [str(frames[0]), str(frames[5]), "--intrinsics", str(root / "intrinsics.json")]
+    args = ["register", *pair, "--features", "fpfh"]
+    runs = {}
+    for name, extra in (("layout", []), ("given", ["--depth-scale", "5000"])):
+        out, report = tmp_path / f"{name}.txt", tmp_path / f"{name}.json"
+        res = runner.invoke(cli, [*args, *extra, "-o", str(out), "--json", str(report)])
+        assert res.exit_code == 0, res.output
+        runs[name] = (out.read_bytes(), json.loads(report.read_text()))
+    assert runs["layout"][0] == runs["given"][0]
+    assert runs["layout"][1]["depth_scale"] == [5000.0, 5000.0]
+    assert runs["layout"][1]["unit"] == "m"
+    for wrong in ("100", "200000"):  # median depth about 30 m, then 0.03 m
+        res = runner.invoke(cli, [*args, "--depth-scale", wrong, "-o", str(tmp_path / "w.txt")])
+        assert res.exit_code == 1, res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and "--depth-scale" in lines[0] and "median depth" in lines[0]
+        assert not (tmp_path / "w.txt").exists()

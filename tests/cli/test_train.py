@@ -101,6 +101,8 @@ def test_config_precedence_end_to_end(shared_data, tmp_path):
         ["--config", str(cfg), "--lr", "0.0005", "--out", str(run), "--quiet", "--device", "cpu"]
     )
     assert result.exit_code == 0, result.stderr
+    assert result.stderr == ""  # --quiet: errors only; the result is the stdout line
+    assert len(result.stdout.splitlines()) == 1
     saved = json.loads((run / "config.json").read_text())
     assert saved["config"]["lr"] == 0.0005 and saved["config"]["steps"] == 2
     assert saved["config"]["seed"] == 8 and "byoc_cli_version" in saved
@@ -144,7 +146,6 @@ def test_validation_on_posed_video_is_logged_plotted_and_summarised(shared_data,
             "cpu",
             "--out",
             str(run),
-            "--quiet",
         ]
     )
     assert result.exit_code == 0, result.stderr
@@ -318,8 +319,9 @@ def test_defaults_fine_tune_the_shipped_weights_and_bar_and_summary_agree(
     shared_data, tmp_path, monkeypatch
 ):
     """``byoc train --rgbd-dir SEQ --steps 3 --out run``, no other flag: the shipped recipe
-    (self-posed, a fine-tune of the shipped weights), which learns on a CPU; the progress
-    bar ends on the loss the summary reports."""
+    (self-posed, a fine-tune of the shipped weights), which learns on a CPU; off a terminal
+    the progress is plain lines (the self-posed pairs' stages first), and the one metrics
+    line's loss is the summary's."""
     import re
 
     monkeypatch.chdir(tmp_path)
@@ -329,9 +331,11 @@ def test_defaults_fine_tune_the_shipped_weights_and_bar_and_summary_agree(
     config = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
     assert config["variant"] == "self-posed" and config["init_weights"] == "shipped"
     assert (config["batch_size"], config["lr"], config["crop_radius"]) == (2, 1e-4, 0.6)
-    bar = re.findall(r"3/3 loss (\d+\.\d{4})", result.stderr)
-    summary = re.findall(r"trained 3 steps in run: loss (\S+) -> (\S+) ", result.stderr)
-    assert bar and summary and bar[-1] == summary[0][1], result.stderr
+    lines = result.stderr.splitlines()
+    assert lines[0].startswith("byoc: self-posed pairs: reading frames 1/"), lines[0]
+    bar = re.findall(r"step 3: loss (\d+\.\d{4})", result.stderr)
+    summary = re.findall(r"trained 3 steps in run: loss (\S+) \(the mean of its one", lines[-1])
+    assert bar and summary and bar[-1] == summary[0], result.stderr
     records = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     last = [json.loads(r) for r in records if '"train"' in r][-1]
     assert f"{last['loss']:.4f}" == bar[-1]
@@ -362,3 +366,32 @@ def test_too_few_pairs_names_the_option_to_change(shared_data, tmp_path):
     assert len(lines) == 1 and "set --view-spacing 2 or less (8 pairs)" in lines[0]
     result = _run([*args, "--batch-size", "10", "--out", str(tmp_path / "run")])
     assert "set --batch-size 9 or less (at --view-spacing 1)" in result.stderr
+
+
+def _corrupt_sequence(shared_data, root):
+    """tum_fr1_xyz's layout with every depth frame replaced by bytes that are no image."""
+    import shutil
+
+    data = shared_data / "rgbd" / "tum_fr1_xyz"
+    (root / "depth").mkdir(parents=True)
+    for name in ("depth.txt", "intrinsics.json"):
+        shutil.copy(data / name, root / name)
+    for png in (data / "depth").iterdir():
+        (root / "depth" / png.name).write_bytes(b"not a png\n")
+    return root
+
+
+@pytest.mark.parametrize("variant", ["self-posed", "byoc-geo"])
+def test_a_run_whose_frames_are_all_corrupt_leaves_no_run_folder(shared_data, tmp_path, variant):
+    data = _corrupt_sequence(shared_data, tmp_path / "seq")
+    out = tmp_path / "new" / "run"
+    args = ["--rgbd-dir", str(data), "--variant", variant, "--steps", "2", "--device", "cpu"]
+    args += ["--batch-size", "1", "--view-spacing", "2", "--num-workers", "0"]
+    result = _run([*args, "--out", str(out)])
+    assert result.exit_code == 1, result.output
+    assert "not an image file" in result.stderr and "Traceback" not in result.output
+    assert not (tmp_path / "new").exists()  # nor the parent the run would have made
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert _run([*args, "--out", str(empty)]).exit_code == 1
+    assert list(empty.iterdir()) == []

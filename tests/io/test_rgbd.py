@@ -773,3 +773,22 @@ def test_copied_real_tum_without_intrinsics_uses_name(shared_data, tmp_path):
     (seq,) = discover_sequences(dst)
     assert np.array_equal(seq.K, K_FR1) and not seq.has_poses
     assert seq.read_depth(0).shape == (480, 640)
+
+
+# ================================================================ one depth image's layout
+
+
+def test_the_layout_of_a_single_depth_image(tmp_path):
+    from byoc_cli.io.rgbd.registry import layout_of_depth_image
+
+    tum = _tum(tmp_path / "tum", [1.0, 2.0], [1.0])
+    image = next((tum / "depth").iterdir())
+    layout, folder = layout_of_depth_image(image)
+    assert (layout.name, layout.depth_scale, folder) == ("tum", 5000.0, tum.absolute())
+    _3dmatch_seq(tmp_path / "scene" / "seq-01", n=2)
+    frame = tmp_path / "scene" / "seq-01" / "frame-000000.depth.png"
+    assert layout_of_depth_image(frame)[0].name == "3dmatch"
+    loose = tmp_path / "loose"
+    loose.mkdir()
+    _save_depth(loose / "d.png", _raw_depth())
+    assert layout_of_depth_image(loose / "d.png") is None

@@ -56,7 +56,7 @@ def test_a_file_names_the_preset_and_changes_some_fields(tmp_path):
         ("[matching]\nmax_points = -1\n", "matching.max_points"),
         ("[matching]\nmax_pts = 1\n", "unknown field matching.max_pts"),
         ("[nope]\n", "unknown key 'nope'"),
-        ('preset = "sift"\n', "unknown preset 'sift'"),
+        ('preset = "sift"\n', "preset must be one of byoc, fpfh (got 'sift')"),
         ('[fitting]\nestimator = "lmeds"\n', "fitting.estimator"),
         ("[gate]\nmin_confidence = 1.5\n", "gate.min_confidence"),
         ('[features]\nvoxel = "big"\n', "features.voxel"),
@@ -130,3 +130,59 @@ def test_help_text_of_a_default_names_each_preset_when_they_differ():
         assert f"{value} with {kind}" in text
     same = preset_values("fitting.ransac_iterations")
     assert describe_default("fitting.ransac_iterations") == str(same["byoc"])
+
+
+def test_every_field_of_a_recipe_has_one_rule():
+    from byoc_cli.pipeline.recipe import _STAGES, RULES
+
+    paths = {
+        f"{stage}.{f.name}" for stage, kind in _STAGES.items() for f in dataclasses.fields(kind)
+    }
+    assert set(RULES) == paths | {"seed", "preset"}
+
+
+@pytest.mark.parametrize(
+    ("tree", "problem"),
+    [
+        ({"preset": ["byoc"]}, "preset must be one of byoc, fpfh (got an array)"),
+        ({"features": {"kind": {"a": 1}}}, "features.kind must be one of byoc, fpfh (got a table)"),
+        (
+            {"fitting": {"num_subsets": 2**63 - 1}},
+            "fitting.num_subsets must be an integer in [1, 10000] (got an integer of 19 digits)",
+        ),
+        ({"fitting": {"subset_size": 2**63 - 1}}, "fitting.subset_size must be an integer in [3,"),
+        (
+            {"fitting": {"inlier_factor": 1e308}},
+            "fitting.inlier_factor must be a number in (0, 100]",
+        ),
+        ({"fitting": {"inlier_factor": float("inf")}}, "fitting.inlier_factor must be a number"),
+        ({"matching": {"max_points": 2.5}}, "matching.max_points must be an integer"),
+        ({"matching": {"max_points": True}}, "matching.max_points must be an integer"),
+        ({"matching": {"correspondences": 2**40}}, "matching.correspondences must be an integer"),
+        ({"fitting": {"ransac_iterations": 10**9}}, "fitting.ransac_iterations must be an integer"),
+        ({"refinement": {"restarts": 1}}, "refinement.restarts must be true or false (got 1)"),
+        ({"features": {"weights": ["w"]}}, "features.weights must be a file name (got an array)"),
+        ({"features": {"voxel": 1e300}}, 'features.voxel must be "auto" or "own" or a number'),
+        ({"seed": 2**64}, "seed must be an integer in [0, 18446744073709551615]"),
+        ({"gate": []}, "[gate] must be a table (got an array)"),
+    ],
+)
+def test_every_value_is_checked_for_type_and_range_before_use(tree, problem):
+    with pytest.raises(RecipeError) as caught:
+        recipe_from_dict(tree)
+    assert str(caught.value).startswith(problem), str(caught.value)
+
+
+def test_the_largest_values_in_range_are_taken():
+    from byoc_cli import limits
+
+    tree = {
+        "fitting": {
+            "num_subsets": limits.MAX_NUM_SUBSETS,
+            "subset_size": limits.MAX_SUBSET_SIZE,
+            "inlier_factor": limits.MAX_INLIER_FACTOR,
+        },
+        "seed": 2**64 - 1,
+    }
+    got = recipe_from_dict(tree)
+    assert got.fitting.num_subsets == limits.MAX_NUM_SUBSETS and got.seed == 2**64 - 1

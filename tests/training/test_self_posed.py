@@ -133,13 +133,19 @@ def test_fine_tuning_starts_from_the_shipped_weights_and_resume_does_not_reload_
     _assert_identical(straight.weights_path, resumed.weights_path)
 
 
-@pytest.mark.parametrize("quiet", [True, False])
-def test_cli_self_posed_run_with_validation(shared_data, tmp_path, quiet):
-    # without --quiet the progress bar shows the loss (it once looked up the paper
-    # variants' three losses and crashed at the first step)
+@pytest.mark.parametrize("mode", ["quiet", "lines", "bar"])
+def test_cli_self_posed_run_with_validation(shared_data, tmp_path, monkeypatch, mode):
+    # the progress bar (a terminal's) shows the loss (it once looked up the paper variants'
+    # three losses and crashed at the first step); off a terminal, lines; -q, nothing
     from click.testing import CliRunner
 
+    import byoc_cli.cli.train as train_command
     from byoc_cli.cli.main import cli
+
+    if mode == "bar":
+        display = train_command._Display
+        monkeypatch.setattr(train_command, "_Display", lambda quiet, bar: display(quiet, True))
+    quiet = mode == "quiet"
 
     toml = tmp_path / "recipe.toml"
     toml.write_text("num_positives = 64\npair_gaps = [2, 4]\n")
@@ -169,11 +175,15 @@ def test_cli_self_posed_run_with_validation(shared_data, tmp_path, quiet):
         ],
     )
     assert result.exit_code == 0, result.output
-    assert "feature-match recall" in result.output
-    # the closing summary names the self-posed figures (it once printed "rot@5deg -% -> -%")
-    summary = [line for line in result.output.splitlines() if "(start) ->" in line]
-    assert len(summary) == 1 and "byoc: validation feature-match recall" in summary[0]
-    assert "-%" not in summary[0]
+    if quiet:
+        assert result.stderr == ""
+    else:
+        assert "feature-match recall" in result.stderr
+        # the closing summary names the self-posed figures (it once printed "rot@5deg -% ->
+        # -%")
+        summary = [line for line in result.stderr.splitlines() if "(start) ->" in line]
+        assert len(summary) == 1 and "byoc: validation feature-match recall" in summary[0]
+        assert "-%" not in summary[0]
     from byoc_cli.pipeline.weights import load_weights
 
     loaded = load_weights(tmp_path / "run" / "weights.safetensors")
@@ -308,6 +318,8 @@ def test_too_short_a_video_is_one_line_naming_pair_gaps(shared_data, tmp_path):
         cli, ["train", "--rgbd-dir", str(seq), "--steps", "1", "--out", str(tmp_path / "run")]
     )
     assert result.exit_code == 1
-    error = result.stderr.strip().splitlines()
-    assert len(error) == 1 and error[0].startswith(f"byoc: error: {seq}: no self-posed pair")
+    lines = result.stderr.strip().splitlines()  # the pseudo-poses' progress, then the error
+    error = [line for line in lines if line.startswith("byoc: error")]
+    assert error == lines[-1:] and error[0].startswith(f"byoc: error: {seq}: no self-posed pair")
     assert "pair_gaps in --config, now 5, 10" in error[0]
+    assert not (tmp_path / "run").exists()  # a failed first step leaves no run folder

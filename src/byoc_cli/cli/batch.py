@@ -19,6 +19,7 @@ from typing import Any
 
 import click
 
+from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.errors import EXIT_ERROR, EXIT_LOW_CONFIDENCE, EXIT_OK, handle_errors
 from byoc_cli.cli.options import (
     device_option,
@@ -29,6 +30,7 @@ from byoc_cli.cli.options import (
 )
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
+    cloud_factors,
     input_options,
     registrar,
     registration_report,
@@ -39,6 +41,8 @@ log = logging.getLogger("byoc")
 
 #: a pair's status in the summary
 OK, LOW_CONFIDENCE, FAILED, SKIPPED = "ok", "low_confidence", "failed", "skipped"
+#: pairs below the gate named on stderr at the end of a run (the others are counted)
+NAMED_BELOW_GATE = 10
 
 
 class ShardType(click.ParamType):
@@ -117,7 +121,8 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     "register-batch",
     epilog="Exit codes: 0 every pair registered (or skipped); 1 bad input, or a pair failed "
     "(the others are still registered); 2 usage error; 3 a pair registered below "
-    "--min-confidence (its T file is still written).",
+    "--min-confidence (its T file is still written), or skipped whose recorded confidence "
+    "is below it; such pairs are named on stderr (the first 10, then a count).",
 )
 @click.argument("pairs", type=click.Path(path_type=Path, dir_okay=False))
 @path_option(
@@ -165,7 +170,8 @@ def register_batch(
     ('#' comments and blank lines allowed; paths relative to the file), writing one T file
     per pair and a JSON Lines summary; every option of `byoc register` applies to each pair.
 
-    A rerun skips the pairs whose T file exists (--overwrite to redo them).
+    A rerun skips the pairs whose T file exists (--overwrite to redo them); their results as
+    the summary recorded them count towards the exit code.
     """
     from byoc_cli.errors import InputError
     from byoc_cli.io.outputs import OutputSet, new_folders
@@ -202,6 +208,7 @@ def register_batch(
         summary = out_dir / name
     mine = {entry.index for entry, _ in planned}
     todo, skipped = [], []
+    recorded = _recorded_results(summary) if not overwrite else {}
     with new_folders(out_dir):  # bad input leaves no folder behind (nor a parent made here)
         policy = OutputSet(inputs)
         policy.claim(summary)
@@ -217,16 +224,22 @@ def register_batch(
         made = registrar(recipe, device) if todo else None
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
+    gate = recipe.gate.min_confidence
+    below: list[tuple[Any, float | None, bool]] = []  # (entry, confidence, skipped)
     started = time.perf_counter()
     with _Summary(summary) as lines:
         for entry, output in skipped:
-            lines.write(_record(entry, output, SKIPPED))
+            earlier = recorded.get(_output_key(output))
+            lines.write(_record(entry, output, SKIPPED, recorded=earlier))
+            if earlier is not None and _below(earlier, gate):
+                below.append((entry, earlier.get("confidence"), True))
         if made is not None:
             run = _PairRunner(
                 made,
                 FeatureCache(2 * cache_size),  # clouds and their features
                 {
                     "scale": options["scale"],
+                    "factors": cloud_factors(options),
                     "intrinsics": intrinsics,
                     "depth_scale": options["depth_scale"],
                 },
@@ -238,22 +251,99 @@ def register_batch(
                     record = run.finish(entry, output, done)
                     counts[record["status"]] += 1
                     lines.write(record)
+                    if record["status"] == LOW_CONFIDENCE:
+                        below.append((entry, record["confidence"], False))
                     progress.advance(f"{counts[FAILED]} failed")
                     if record["status"] == FAILED:
                         click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
     seconds = time.perf_counter() - started
-    click.echo(
-        f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
-        f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists); summary {summary}; "
-        f"{len(todo)} pairs in {seconds:.1f} s ({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
-        err=True,
-    )
+    skipped_below = sum(1 for *_, was_skipped in below if was_skipped)
+    if not is_quiet(False):  # -q: the failures' lines (errors), the summary file and the code
+        for line in _below_gate_lines(below, gate, summary):
+            click.echo(line, err=True)
+        skipped_note = ""
+        if skipped_below:
+            skipped_note = f"; {skipped_below} of them below --min-confidence as recorded"
+        click.echo(
+            f"byoc: {counts[OK]} registered, {counts[LOW_CONFIDENCE]} below --min-confidence, "
+            f"{counts[FAILED]} failed, {counts[SKIPPED]} skipped (T file exists{skipped_note}); "
+            f"summary {summary}; {len(todo)} pairs in {seconds:.1f} s "
+            f"({len(todo) / max(seconds, 1e-9):.2f} pairs/s)",
+            err=True,
+        )
     if counts[FAILED]:
         raise SystemExit(EXIT_ERROR)
-    raise SystemExit(EXIT_LOW_CONFIDENCE if counts[LOW_CONFIDENCE] else EXIT_OK)
+    raise SystemExit(EXIT_LOW_CONFIDENCE if below else EXIT_OK)
 
 
-def _record(entry, output: Path, status: str, error: str | None = None) -> dict:
+def _output_key(output: Path) -> str:
+    """How a T file is matched with the records of earlier runs (its absolute path)."""
+    return str(output.absolute())
+
+
+def _recorded_results(summary: Path) -> dict[str, dict]:
+    """The last registered result (status ``ok`` or ``low_confidence``) an earlier run
+    recorded in ``summary`` for each T file: ``{output key: {"status", "confidence",
+    "min_confidence"}}``; empty when there is no summary or it cannot be read (a line cut by
+    a kill is passed over)."""
+    import json
+
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.inputs import open_input
+
+    if not summary.exists():
+        return {}
+    found: dict[str, dict] = {}
+    try:
+        with open_input(summary, "report") as file:
+            for raw in file:
+                try:
+                    record = json.loads(raw)
+                except ValueError:
+                    continue
+                if not isinstance(record, dict) or record.get("status") not in (OK, LOW_CONFIDENCE):
+                    continue
+                output = record.get("output")
+                if isinstance(output, str):
+                    keep = ("status", "confidence", "min_confidence")
+                    found[_output_key(Path(output))] = {k: record.get(k) for k in keep}
+    except InputError as exc:
+        log.warning("the statuses of pairs done earlier are not known: %s", exc)
+    return found
+
+
+def _below(recorded: dict, gate: float) -> bool:
+    """Whether a recorded result is below this run's gate (its confidence against ``gate``;
+    without a confidence, its recorded status)."""
+    confidence = recorded.get("confidence")
+    if isinstance(confidence, int | float) and not isinstance(confidence, bool):
+        return confidence < gate
+    return recorded.get("status") == LOW_CONFIDENCE
+
+
+def _below_gate_lines(below: list, gate: float, summary: Path) -> list[str]:
+    """The pairs below the gate, one line each up to :data:`NAMED_BELOW_GATE`, then a count."""
+    lines = []
+    for entry, confidence, was_skipped in below[:NAMED_BELOW_GATE]:
+        shown = "unknown" if confidence is None else f"{confidence:.3f}"
+        when = " (recorded by an earlier run; T file kept)" if was_skipped else ""
+        lines.append(
+            f"byoc: line {entry.line}: {entry.source} -> {entry.target}: confidence {shown} "
+            f"is below --min-confidence {gate:g}{when}"
+        )
+    if len(below) > NAMED_BELOW_GATE:
+        lines.append(
+            f"byoc: and {len(below) - NAMED_BELOW_GATE} more pairs below --min-confidence "
+            f"(the summary {summary} has every one)"
+        )
+    return lines
+
+
+def _record(
+    entry, output: Path, status: str, error: str | None = None, recorded: dict | None = None
+) -> dict:
+    """The fields every summary line has; ``recorded``: a skipped pair's result as an earlier
+    run recorded it (``status``, ``confidence``, ``min_confidence``)."""
     return {
         "index": entry.index,
         "line": entry.line,
@@ -262,6 +352,7 @@ def _record(entry, output: Path, status: str, error: str | None = None) -> dict:
         "output": str(output),
         "status": status,
         "error": error,
+        "recorded": recorded,
     }
 
 
@@ -300,16 +391,17 @@ class _PairRunner:
         started = time.perf_counter()
         timings: dict[str, float] = {}
         try:
-            cloud_src = self._cloud(entry.source, "source", timings)
-            cloud_tgt = self._cloud(entry.target, "target", timings)
+            (factor_src, factor_tgt), _ = self.load["factors"]
+            cloud_src = self._cloud(entry.source, "source", factor_src, timings)
+            cloud_tgt = self._cloud(entry.target, "target", factor_tgt, timings)
             choice, voxels = None, [(None, None, 1.0)] * 2
             if self.registrar.auto_voxel:
                 choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
                 voxels = [
                     (choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)
                 ]
-            src = self._features(cloud_src, entry.source, voxels[0], timings, "features_src")
-            tgt = self._features(cloud_tgt, entry.target, voxels[1], timings, "features_tgt")
+            src = self._features(cloud_src, voxels[0], timings, "features_src")
+            tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
             result = self.registrar.match(src, tgt)
             result = result._replace(
                 timings={**timings, **result.timings},
@@ -319,31 +411,34 @@ class _PairRunner:
             result = exc
         return result, time.perf_counter() - started
 
-    def _cloud(self, path: Path, label: str, timings: dict):
-        """``(points, name, CloudScale | None)`` of a file, read (and measured for an auto
-        voxel) once while it stays in the cache."""
+    def _cloud(self, path: Path, label: str, factor: float | None, timings: dict):
+        """``(points, name, CloudScale | None, key)`` of a file times its ``factor`` to metres,
+        read (and measured for an auto voxel) once while it stays in the cache."""
         start = time.perf_counter()
+        key = ("cloud", path.resolve(), factor)
 
         def read():
-            load = dict(self.load)
-            points, name = self.registrar.load(path, label, load.pop("scale"), **load)
+            load = {k: self.load[k] for k in ("intrinsics", "depth_scale")}
+            points, name = self.registrar.load(path, label, factor, **load)
             auto = self.registrar.auto_voxel
-            return points, name, self.registrar.cloud_scale(points, name) if auto else None
+            size = self.registrar.cloud_scale(points, name) if auto else None
+            return points, name, size, key
 
-        cloud, cached = self.cache.get(("cloud", path.resolve()), read)
+        cloud, cached = self.cache.get(key, read)
         timings["load"] = timings.get("load", 0.0) + (
             0.0 if cached else time.perf_counter() - start
         )
         return cloud
 
-    def _features(self, cloud, path: Path, voxel: tuple, timings: dict, stage: str):
+    def _features(self, cloud, voxel: tuple, timings: dict, stage: str):
         """Features at ``voxel``, ``(voxel_size, refine_voxel, keep)`` (None, None, 1.0:
-        the registrar's)."""
+        the registrar's); their ``scale`` is the target's factor (T in the target's units)."""
         start = time.perf_counter()
-        points, name, _ = cloud
+        points, name, _, key = cloud
+        units = self.load["factors"][0][1]
         feats, cached = self.cache.get(
-            ("features", path.resolve(), voxel),
-            lambda: self.registrar.extract_points(points, self.load["scale"], name, *voxel),
+            ("features", key, voxel),
+            lambda: self.registrar.extract_points(points, units, name, *voxel),
         )
         timings[stage] = 0.0 if cached else time.perf_counter() - start
         return feats
@@ -365,17 +460,20 @@ class _PairRunner:
             log.debug("pair on line %d failed", entry.line, exc_info=True)
             message = " ".join(str(exc).split()) or type(exc).__name__
             return _record(entry, output, FAILED, message)
-        passed = result.confidence >= self.min_confidence
+        factors, factors_given = self.load["factors"]
         run = {
             "min_confidence": self.min_confidence,
             "scale": self.load["scale"],
+            "factors": factors,
+            "factors_given": factors_given,
+            "depth_scale": self.load["depth_scale"],
             "device": self.device,
             "started": time.perf_counter(),
         }
         report = registration_report(result, self.registrar, (entry.source, entry.target), run)
         del report["timings_s"]["command"]
         report["timings_s"]["pair"] = seconds
-        return {**_record(entry, output, OK if passed else LOW_CONFIDENCE), **report}
+        return {**_record(entry, output, OK if result.passed else LOW_CONFIDENCE), **report}
 
 
 class _Summary:

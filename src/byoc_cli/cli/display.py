@@ -6,21 +6,56 @@ import sys
 from typing import Any
 
 
+def countdown(
+    completed: float, total: float | None, elapsed: float | None, since: float
+) -> float | None:
+    """Seconds left of a task: the mean time per item so far times the items left, as of its
+    last advance (``completed`` items in ``elapsed`` seconds), less the ``since`` seconds
+    that have passed from then; None before the first item. So the ETA of work in items of
+    many seconds (``register-batch``'s pairs) counts down between them instead of standing."""
+    if not completed or total is None or elapsed is None:
+        return None
+    left = elapsed * (total - completed) / completed
+    return max(0.0, left - since)
+
+
 def progress_bar(*fields: str) -> Any:
     """A started rich ``Progress`` on stderr: description, bar, done/total, then a text
-    column for each of ``fields`` (format strings of the task), elapsed time and ETA.
+    column for each of ``fields`` (format strings of the task), elapsed time and ETA (a
+    :func:`countdown`).
 
     The caller ends it with ``progress.__exit__(None, None, None)``.
     """
+    import time
+    from datetime import timedelta
+
     from rich.console import Console
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
         Progress,
+        ProgressColumn,
         TextColumn,
         TimeElapsedColumn,
-        TimeRemainingColumn,
     )
+    from rich.text import Text
+
+    class CountdownColumn(ProgressColumn):
+        """The ETA of :func:`countdown`, per task."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.advanced: dict[Any, tuple[float, float | None, float]] = {}
+
+        def render(self, task: Any) -> Text:
+            now = time.monotonic()
+            seen = self.advanced.get(task.id)
+            if seen is None or seen[0] != task.completed:
+                seen = (task.completed, task.elapsed, now)
+                self.advanced[task.id] = seen
+            left = countdown(seen[0], task.total, seen[1], now - seen[2])
+            shown = "-:--:--" if left is None else str(timedelta(seconds=round(left)))
+            return Text(shown, style="progress.remaining")
 
     progress = Progress(
         TextColumn("[bold]{task.description}"),
@@ -29,7 +64,7 @@ def progress_bar(*fields: str) -> Any:
         *(TextColumn(field) for field in fields),
         TimeElapsedColumn(),
         TextColumn("ETA"),
-        TimeRemainingColumn(),
+        CountdownColumn(),
         console=Console(stderr=True),
     )
     progress.__enter__()

@@ -33,7 +33,7 @@ _METHOD_FLAG = "--method"
 
 
 def _known_methods() -> tuple[str, ...]:
-    from byoc_cli.evaluation.methods import METHOD_NAMES
+    from byoc_cli.evaluation.method_names import METHOD_NAMES
 
     return METHOD_NAMES
 
@@ -169,7 +169,7 @@ class EvalRun:
 
     def start(self, input_dirs: Sequence[Path | None]) -> None:
         """Check methods, device and outputs before any long work; sets ``names``."""
-        from byoc_cli.evaluation.methods import parse_method_names
+        from byoc_cli.evaluation.method_names import parse_method_names
 
         self.quiet = is_quiet(self.quiet)
         try:

@@ -87,7 +87,11 @@ def _npz_bytes(feats) -> bytes:
 )
 @path_option("--intrinsics", help="For a depth-image input: intrinsics JSON or 3x3 text.")
 @float_option(
-    "--depth-scale", type=DEPTH_SCALE, default=1000.0, help="Depth-image units per metre."
+    "--depth-scale",
+    type=DEPTH_SCALE,
+    default=None,
+    help="Depth-image units per metre [default: the convention of the dataset layout around "
+    "the file (TUM: 5000), else 1000].",
 )
 @device_option
 @verbosity_options

@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from byoc_cli import limits
+from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.errors import CliError, handle_errors
 from byoc_cli.cli.options import (
     DEPTH_SCALE,
@@ -168,12 +169,15 @@ def make_fragments(
     sequence = _load_sequence(rgbd_dir, intrinsics, depth_scale)
     if scene is None:
         scene = _scene_name(rgbd_dir, sequence)
-    if sequence.num_skipped:
+    quiet = is_quiet(False)
+    if sequence.num_skipped and not quiet:
         click.echo(
             f"byoc: {sequence.num_skipped} frames skipped (no depth file or no pose)", err=True
         )
 
     def on_fragment(info, total: int) -> None:
+        if quiet:
+            return
         click.echo(
             f"byoc: fragment {info.index + 1}/{total}: frames {info.frames[0]}-"
             f"{info.frames[-1]}, {info.num_points} points "

@@ -74,10 +74,10 @@ def float_option(*decls: str, type: click.ParamType, **kwargs: Any) -> Callable:
     return click.option(*decls, type=type, **kwargs)
 
 
-def int_option(*decls: str, min: int = 0, **kwargs: Any) -> Callable:
-    """An integer option of at least ``min``."""
+def int_option(*decls: str, min: int = 0, max: int | None = None, **kwargs: Any) -> Callable:
+    """An integer option of at least ``min`` (and at most ``max``)."""
     kwargs.setdefault("show_default", kwargs.get("default") is not None)
-    return click.option(*decls, type=click.IntRange(min=min), **kwargs)
+    return click.option(*decls, type=click.IntRange(min=min, max=max), **kwargs)
 
 
 class FilePath(click.Path):

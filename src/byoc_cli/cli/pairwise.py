@@ -32,6 +32,19 @@ input_options = apply(
         help="Multiply input coordinates by this (0.001 for millimetres); disables the "
         "unit check. T is written in the input units.",
     ),
+    float_option(
+        "--source-scale",
+        type=SCALE,
+        help="The source's own factor to metres, for clouds in different units "
+        "[default: --scale, else 1 when --target-scale is given]. T maps the source, brought "
+        "into the target's units, into the target's frame, in the target's units.",
+    ),
+    float_option(
+        "--target-scale",
+        type=SCALE,
+        help="The target's own factor to metres [default: --scale, else 1 when --source-scale "
+        "is given].",
+    ),
     path_option(
         "--intrinsics",
         help="For depth-image inputs: Open3D intrinsics JSON or a 3x3 text matrix.",
@@ -39,10 +52,45 @@ input_options = apply(
     float_option(
         "--depth-scale",
         type=DEPTH_SCALE,
-        default=1000.0,
-        help="Depth-image units per metre (1000 = mm, 5000 = TUM).",
+        default=None,
+        help="Depth-image units per metre (1000 = mm, 5000 = TUM) [default: the convention of "
+        "the dataset layout around the file (TUM: depth.txt beside depth/, 5000; 3DMatch, "
+        "ScanNet, Redwood: 1000), else 1000]. A median depth outside 0.1-20 m is refused.",
     ),
 )
+
+
+def cloud_factors(options: dict) -> tuple[tuple[float | None, float | None], bool]:
+    """Each cloud's factor to metres from a command's ``scale``, ``source_scale`` and
+    ``target_scale`` options: ``((source, target), both given)``. A per-cloud option wins over
+    ``--scale``; a cloud with no factor while the other has its own is taken as it is (1);
+    ``(None, None)``: no option given."""
+    scale = options.get("scale")
+    src = scale if options.get("source_scale") is None else options["source_scale"]
+    tgt = scale if options.get("target_scale") is None else options["target_scale"]
+    if src is None and tgt is None:
+        return (None, None), False
+    both = src is not None and tgt is not None
+    return ((1.0 if src is None else src), (1.0 if tgt is None else tgt)), both
+
+
+def register_pair(made, source, target, factors: tuple, load: dict):
+    """Register ``source`` onto ``target`` with ``made`` (a :class:`~byoc_cli.api.Registrar`)
+    and each cloud's factor to metres (:func:`cloud_factors`); ``load``: ``intrinsics`` and
+    ``depth_scale``.
+
+    With one factor for both, the registrar reads the files (``scale``). With two, the source
+    is read into the target's units (its factor over the target's) and both go to the
+    registrar as arrays at the target's factor: ``T`` stays rigid and is in the target's units.
+    """
+    from byoc_cli.api import load_cloud
+
+    src, tgt = factors
+    if src == tgt:
+        return made.register(source, target, scale=src, **load)
+    points_src = load_cloud(source, scale=src / tgt, **load)
+    points_tgt = load_cloud(target, scale=1.0, **load)
+    return made.register(points_src, points_tgt, scale=tgt, **load)
 
 
 def registrar(recipe, device: str):
@@ -91,10 +139,57 @@ def check_depth_inputs(paths, intrinsics: Path | None) -> None:
         log.warning("--intrinsics %s is not used: no input is a depth image", intrinsics)
 
 
+def known_unit(result, pair: tuple[Path, Path], factors_given: bool) -> str | None:
+    """``"m"`` when the points a registration measured its voxel and inlier threshold in are
+    known to be metres, else None (the inputs' own units, whatever they are).
+
+    Known: a factor to metres was given for both clouds (``factors_given``: ``--scale``, or
+    ``--source-scale`` and ``--target-scale``), both inputs are depth
+    images (their depth scale gives metres), the features' own voxel was asked for (``own``:
+    the inputs are checked to look like metres), or the auto voxel found scans of the size
+    the features were trained on and kept their own voxel (its unit check). A voxel the auto
+    path scaled (millimetres, objects, LiDAR) or a number given leaves the unit unknown.
+    """
+    if factors_given:
+        return "m"
+    if all(Path(p).suffix.lower() in DEPTH_EXTENSIONS for p in pair):
+        return "m"
+    voxel = (result.recipe or {}).get("features", {}).get("voxel")
+    choice = result.voxel_choice
+    if voxel == "own":
+        return "m"
+    if choice is not None and choice["refine_voxel_size"] == choice["reference_voxel_size"]:
+        return "m"
+    return None
+
+
+def depth_scale_used(path: Path, given: float | None) -> float | None:
+    """The depth scale a depth-image input was read with (the option's, else its layout's,
+    else 1000: :func:`byoc_cli.api_types.depth_scale_of`); None for a point cloud."""
+    if Path(path).suffix.lower() not in DEPTH_EXTENSIONS:
+        return None
+    from byoc_cli.api_types import depth_scale_of
+
+    value, source = depth_scale_of(path, given)
+    log.info("%s: depth scale %g (%s)", path, value, source)
+    return value
+
+
+def format_length(value: float, unit: str | None) -> str:
+    """A length for a message: ``5.0 cm`` or ``0.025 m`` in metres, ``51.6 input units``
+    when the unit is not known (:func:`known_unit`)."""
+    if unit != "m":
+        return f"{value:.4g} input units"
+    return f"{100 * value:.1f} cm" if value < 1 else f"{value:.4g} m"
+
+
 def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -> dict:
     """The JSON report of one registration (``register --json``, a line of the batch
     summary); ``run``: ``min_confidence``, ``scale``, ``device`` and ``started`` (the
-    ``perf_counter`` the command started at)."""
+    ``perf_counter`` the command started at), ``factors``: each cloud's factor to metres
+    (:func:`cloud_factors`) and ``factors_given``: whether both were given. ``voxel_size``
+    and ``inlier_threshold`` are in the units ``unit`` names: ``"m"``, or None for the
+    inputs' own (:func:`known_unit`)."""
     import time
 
     from byoc_cli import __version__
@@ -113,16 +208,20 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "num_correspondences": result.num_correspondences,
         "num_inliers": result.num_inliers,
         "inlier_ratio": result.inlier_ratio,
-        "inlier_threshold_m": result.inlier_threshold,
+        "inlier_threshold": result.inlier_threshold,
         "overlap": result.overlap,
         "confidence": result.confidence,
         "cues": result.cues,
         "min_confidence": run["min_confidence"],
-        "passed": result.confidence >= run["min_confidence"],
-        "voxel_size_m": result.voxel_size,
+        "passed": result.passed,
+        "voxel_size": result.voxel_size,
+        "unit": known_unit(result, pair, run["factors_given"]),
         "voxel_choice": result.voxel_choice,
         "fallback": result.fallback,
         "scale": run["scale"],
+        "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
+        "source_scale": run["factors"][0],
+        "target_scale": run["factors"][1],
         "max_points": result.max_points,
         "seed": result.seed,
         "recipe": result.recipe,

@@ -86,13 +86,15 @@ def _options() -> dict[str, Callable]:
         ),
         "max_points": int_option(
             "--max-points",
+            max=_high("matching.max_points"),
             default=None,
             help="Seeded random subset of kept points per cloud that enters matching (0 = all) "
             f"{_default('matching.max_points')}.",
         ),
         "num_correspondences": int_option(
             "--num-correspondences",
-            min=3,
+            min=int(recipes.RULES["matching.correspondences"].low),
+            max=_high("matching.correspondences"),
             default=None,
             help=f"Top-k ratio-test matches kept per direction "
             f"{_default('matching.correspondences')}.",
@@ -122,6 +124,11 @@ def _options() -> dict[str, Callable]:
             f"{_default('seed')}",
         ),
     }
+
+
+def _high(path: str) -> int:
+    """The largest value of an integer field of the recipe (:data:`recipes.RULES`)."""
+    return int(recipes.RULES[path].high)
 
 
 def _voxel_own() -> str:

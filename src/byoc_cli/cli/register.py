@@ -30,7 +30,10 @@ from byoc_cli.cli.output import (
 )
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
+    cloud_factors,
+    format_length,
     input_options,
+    register_pair,
     registrar,
     registration_report,
 )
@@ -44,8 +47,10 @@ class RegisterOptions:
     """The options of ``register`` besides the clouds, the outputs and the recipe's."""
 
     scale: float | None
+    source_scale: float | None
+    target_scale: float | None
     intrinsics: Path | None
-    depth_scale: float
+    depth_scale: float | None
     device: str
 
 
@@ -96,7 +101,9 @@ def register(
     TARGET's frame: x_tgt = R x_src + t (column vectors; T = [[R, t], [0, 0, 0, 1]]).
 
     SOURCE and TARGET are point clouds (.ply, .pcd, .xyz, .pts, .npy of shape N x 3) in
-    metres, or depth images (.png, with --intrinsics and --depth-scale).
+    any unit (the voxel follows their size; T is in their units; --scale brings them to
+    metres), or depth images (.png, with --intrinsics and --depth-scale). Lengths the report
+    gives are in metres when the unit is known, else in input units.
     """
     started = time.perf_counter()
     recipe_file = options.get("recipe_path")
@@ -113,14 +120,16 @@ def register(
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
 
     made = registrar(recipe, o.device)
-    result = made.register(
-        source, target, scale=o.scale, intrinsics=o.intrinsics, depth_scale=o.depth_scale
-    )
+    factors, factors_given = cloud_factors(options)
+    load = {"intrinsics": o.intrinsics, "depth_scale": o.depth_scale}
+    result = register_pair(made, source, target, factors, load)
     min_confidence = recipe.gate.min_confidence
-    passed = result.confidence >= min_confidence
     run = {
         "min_confidence": min_confidence,
         "scale": o.scale,
+        "factors": factors,
+        "factors_given": factors_given,
+        "depth_scale": o.depth_scale,
         "device": o.device,
         "started": started,
     }
@@ -131,10 +140,12 @@ def register(
         if aligned is not None:
             with warnings.catch_warnings():  # read again: its warnings were shown once
                 warnings.simplefilter("ignore")
-                points = load_cloud(
-                    source, intrinsics=o.intrinsics, depth_scale=o.depth_scale, scale=o.scale
-                )
-            moved = (points / (o.scale or 1.0)) @ T[:3, :3].T + T[:3, 3]
+                src, tgt = factors
+                if src == tgt:  # the source in its own units, as read
+                    points = load_cloud(source, scale=src, **load) / (src or 1.0)
+                else:  # the source brought into the target's units
+                    points = load_cloud(source, scale=src / tgt, **load)
+            moved = points @ T[:3, :3].T + T[:3, 3]
             if is_stdout(aligned):
                 write_stdout_bytes(write_ply(None, moved))
             else:
@@ -144,24 +155,29 @@ def register(
             write_stdout(format_transform(T))
         elif output is not None:
             atomic_write_text(output, format_transform(T))
-    if not is_quiet(False):
-        click.echo(summary_line(source, target, result, report["timings_s"]["command"]), err=True)
-    if not passed:
+    quiet = is_quiet(False)  # -q: errors and the result (T, the exit code) only
+    if not quiet:
+        seconds = report["timings_s"]["command"]
+        click.echo(summary_line(source, target, result, seconds, report["unit"]), err=True)
+    if not result.passed and not quiet:
         click.echo(
             f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
             f"{min_confidence:g}: T is likely wrong (written all the same)",
             err=True,
         )
+    if not result.passed:
         raise SystemExit(EXIT_LOW_CONFIDENCE)
 
 
-def summary_line(source: Path, target: Path, result, seconds: float) -> str:
+def summary_line(source: Path, target: Path, result, seconds: float, unit: str | None) -> str:
     """The line a successful ``byoc register`` prints on stderr: confidence, inliers, the
-    voxel used and the time (``-q`` silences it)."""
+    voxel used (in metres when ``unit`` is ``"m"``, else in input units) and the time (``-q``
+    silences it)."""
+    voxel = f"{result.voxel_size:g} m" if unit == "m" else f"{result.voxel_size:.4g} input units"
     line = (
         f"byoc: registered {source} -> {target}: confidence {result.confidence:.3f}, "
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
-        f"{100 * result.inlier_threshold:.1f} cm, voxel {result.voxel_size:g} m, {seconds:.1f} s"
+        f"{format_length(result.inlier_threshold, unit)}, voxel {voxel}, {seconds:.1f} s"
     )
     if result.fallback and result.fallback["used"]:
         line += (

@@ -11,6 +11,7 @@ from typing import Any
 
 import click
 
+from byoc_cli.cli.display import is_quiet
 from byoc_cli.cli.errors import EXIT_LOW_CONFIDENCE, handle_errors
 from byoc_cli.cli.options import (
     SCALE,
@@ -248,7 +249,8 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
         unplaced = _run(scans_list, out, settings, quiet, started)
     if unplaced:
         names = ", ".join(str(scans_list[k]) for k in unplaced[:5])
-        click.echo(f"byoc: {len(unplaced)} scan(s) not placed: {names}", err=True)
+        if not is_quiet(quiet):
+            click.echo(f"byoc: {len(unplaced)} scan(s) not placed: {names}", err=True)
         raise SystemExit(EXIT_LOW_CONFIDENCE)
 
 

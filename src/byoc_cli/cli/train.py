@@ -6,7 +6,9 @@ import logging
 import math
 import re
 import signal
+import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -84,21 +86,38 @@ def _loss_text(losses: dict[str, float]) -> str:
     return " ".join(parts)
 
 
+#: how each stage of the work before the first step is named
+_STAGES = {
+    "frames": "self-posed pairs: reading frames",
+    "odometry": "self-posed pairs: odometry",
+    "pairs": "self-posed pairs: registering pairs",
+    "cache": "caching the frames of the pairs",
+}
+
+
 class _Display:
-    """Progress on stderr: a rich bar (default) or plain log lines (``--quiet``).
+    """Progress on stderr: a rich bar on a terminal, plain lines otherwise (a log file, a
+    pipe), nothing with ``-q`` (errors only).
 
     The bar shows the losses averaged since the last metrics line, then that line's own
-    figures: the figures of ``metrics.jsonl`` and of the closing summary.
+    figures: the figures of ``metrics.jsonl`` and of the closing summary. The work before the
+    first step (``self-posed``: its pseudo-poses) is shown per stage, so that no run is
+    silent for minutes.
     """
 
-    def __init__(self, quiet: bool) -> None:
+    #: seconds between two plain lines of one stage
+    LINE_EVERY_S = 10.0
+
+    def __init__(self, quiet: bool, bar: bool) -> None:
         self.quiet = quiet
+        self.bar = bar and not quiet
         self.progress = None
         self.task = None
         self.window: list[dict[str, float]] = []
+        self.stages: dict[str, Any] = {}  # stage -> its bar task, or the time of its last line
 
     def __enter__(self) -> _Display:
-        if not self.quiet:
+        if self.bar:
             self.progress = progress_bar("{task.fields[losses]}", "{task.fields[rate]} steps/s")
         return self
 
@@ -107,12 +126,27 @@ class _Display:
             self.progress.__exit__(*exc)
 
     def echo(self, text: str) -> None:
+        if self.quiet:
+            return
         if self.progress is not None:
             self.progress.console.print(text, markup=False, highlight=False)
         else:
             click.echo(f"byoc: {text}", err=True)
 
     # callbacks ---------------------------------------------------------------
+    def on_stage(self, stage: str, done: int, total: int) -> None:
+        label = _STAGES.get(stage, stage)
+        if self.progress is not None:
+            if stage not in self.stages:
+                self.stages[stage] = self.progress.add_task(label, total=total, losses="", rate="-")
+            self.progress.update(self.stages[stage], completed=done, total=total)
+            return
+        now = time.monotonic()
+        last = self.stages.get(stage)
+        if last is None or done == total or now - last >= self.LINE_EVERY_S:
+            self.stages[stage] = now
+            self.echo(f"{label} {done}/{total}")
+
     def on_start(self, step: int, total: int) -> None:
         if self.progress is not None:
             self.task = self.progress.add_task(
@@ -134,16 +168,16 @@ class _Display:
         self.window = []
         if self.progress is not None and self.task is not None:
             self.progress.update(self.task, losses=_loss_text(record))
-        if self.quiet:
-            terms = " ".join(
-                f"{k.removeprefix('loss_')} {_fmt(record.get(k))}"
-                for k in ("loss_vis", "loss_geo", "loss_v2g")
-                if record.get(k)
-            )
-            self.echo(
-                f"step {record['step']}: loss {_fmt(record['loss'])} {terms} "
-                f"({_fmt(record.get('steps_per_s'), '.2f')} steps/s)"
-            )
+            return
+        terms = " ".join(
+            f"{k.removeprefix('loss_')} {_fmt(record.get(k))}"
+            for k in ("loss_vis", "loss_geo", "loss_v2g")
+            if record.get(k)
+        )
+        self.echo(
+            f"step {record['step']}: loss {_fmt(record['loss'])} {terms} "
+            f"({_fmt(record.get('steps_per_s'), '.2f')} steps/s)"
+        )
 
     def on_validation(self, step: int, metrics: dict) -> None:
         if "rot_acc_5" not in metrics:  # the self-posed variant's feature-match validation
@@ -165,8 +199,19 @@ class _Display:
         )
 
     def on_checkpoint(self, step: int, path: Path) -> None:
-        if self.quiet:
+        if self.progress is None:
             self.echo(f"checkpoint {path}")
+
+
+def _loss_summary(result) -> str:
+    """The losses of the closing line: the first and last metrics lines' means, or the one
+    line's when the run logged once."""
+    if result.loss_lines <= 1:
+        return f"loss {_fmt(result.last_loss)} (the mean of its one metrics line)"
+    return (
+        f"loss {_fmt(result.first_loss)} -> {_fmt(result.last_loss)} (means of the first and "
+        f"last of {result.loss_lines} metrics lines)"
+    )
 
 
 def _explicit(ctx: click.Context, values: dict[str, Any]) -> dict[str, Any]:
@@ -312,7 +357,10 @@ def _blame_file(
 )
 @apply(*(click.option(decls, default=None, help=text) for decls, text in _SWITCHES))
 @verbose_option
-@quiet_option("Plain log lines instead of a progress bar; no warnings.", expose_value=True)
+@quiet_option(
+    "Only errors on stderr: no progress, no summary (the weights line stays on stdout).",
+    expose_value=True,
+)
 @click.pass_context
 @handle_errors
 def train(
@@ -366,9 +414,11 @@ def train(
     if not info.distributed:
         _interrupt_on_sigterm()
     try:
-        display = _Display(is_quiet(quiet) or not info.is_main)
+        quiet = is_quiet(quiet) or not info.is_main
+        display = _Display(quiet, bar=sys.stderr.isatty())
         with display:
-            hooks = ("on_start", "on_step", "on_log", "on_validation", "on_checkpoint")
+            hooks = ("on_stage", "on_start", "on_step", "on_log", "on_validation")
+            hooks += ("on_checkpoint",)
             callbacks = TrainCallbacks(**{hook: getattr(display, hook) for hook in hooks})
             result = run_training(config, resume=resume is not None, callbacks=callbacks, info=info)
     finally:
@@ -380,13 +430,12 @@ def train(
             _fmt(result.first_loss),
             _fmt(result.last_loss),
         )
-        click.echo(
-            f"byoc: trained {result.steps} steps in {result.run_dir}: loss "
-            f"{_fmt(result.first_loss)} -> {_fmt(result.last_loss)} (means of the first and "
-            "last metrics lines)",
-            err=True,
-        )
-        if result.validation:
+        if not quiet:
+            click.echo(
+                f"byoc: trained {result.steps} steps in {result.run_dir}: {_loss_summary(result)}",
+                err=True,
+            )
+        if result.validation and not quiet:
             click.echo(
                 f"byoc: {_validation_summary(result.initial_validation, result.validation)}",
                 err=True,

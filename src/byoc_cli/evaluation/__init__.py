@@ -1,54 +1,47 @@
 """Evaluation layer of byoc-cli: 3DMatch feature-match recall and registration recall
 (``byoc eval-fmr``), pairwise accuracy on posed RGB-D video (``byoc eval-pairs``), with every
 method on the same pairs.
+
+The names below are imported from their modules (and torch with them) when first used.
 """
 
-from byoc_cli.evaluation.cache import FeatureCache, file_identity
-from byoc_cli.evaluation.fmr import (
-    FmrConfig,
-    FmrResult,
-    evaluate_fmr,
-    load_benchmark_pairs,
-    pair_seed,
-)
-from byoc_cli.evaluation.methods import METHOD_NAMES, Method, build_methods, parse_method_names
-from byoc_cli.evaluation.metrics import (
-    chamfer_distance,
-    correspondence_inlier_ratio,
-    fused_chamfer,
-    nn_inlier_ratio,
-    recall_by_group,
-    registration_rmse,
-)
-from byoc_cli.evaluation.pairs import (
-    PairsConfig,
-    PairsResult,
-    evaluate_pairs,
-    prepared_pairs,
-    rgbd_pairs,
-)
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "METHOD_NAMES",
-    "FeatureCache",
-    "FmrConfig",
-    "FmrResult",
-    "Method",
-    "PairsConfig",
-    "PairsResult",
-    "build_methods",
-    "chamfer_distance",
-    "correspondence_inlier_ratio",
-    "evaluate_fmr",
-    "evaluate_pairs",
-    "file_identity",
-    "fused_chamfer",
-    "load_benchmark_pairs",
-    "nn_inlier_ratio",
-    "pair_seed",
-    "parse_method_names",
-    "prepared_pairs",
-    "recall_by_group",
-    "registration_rmse",
-    "rgbd_pairs",
-]
+#: exported name -> its module
+_EXPORTS = {
+    "FeatureCache": "byoc_cli.evaluation.cache",
+    "file_identity": "byoc_cli.evaluation.cache",
+    "FmrConfig": "byoc_cli.evaluation.fmr",
+    "FmrResult": "byoc_cli.evaluation.fmr",
+    "evaluate_fmr": "byoc_cli.evaluation.fmr",
+    "load_benchmark_pairs": "byoc_cli.evaluation.fmr",
+    "pair_seed": "byoc_cli.evaluation.fmr",
+    "METHOD_NAMES": "byoc_cli.evaluation.method_names",
+    "Method": "byoc_cli.evaluation.methods",
+    "build_methods": "byoc_cli.evaluation.methods",
+    "parse_method_names": "byoc_cli.evaluation.method_names",
+    "chamfer_distance": "byoc_cli.evaluation.metrics",
+    "correspondence_inlier_ratio": "byoc_cli.evaluation.metrics",
+    "fused_chamfer": "byoc_cli.evaluation.metrics",
+    "nn_inlier_ratio": "byoc_cli.evaluation.metrics",
+    "recall_by_group": "byoc_cli.evaluation.metrics",
+    "registration_rmse": "byoc_cli.evaluation.metrics",
+    "PairsConfig": "byoc_cli.evaluation.pairs",
+    "PairsResult": "byoc_cli.evaluation.pairs",
+    "evaluate_pairs": "byoc_cli.evaluation.pairs",
+    "prepared_pairs": "byoc_cli.evaluation.pairs",
+    "rgbd_pairs": "byoc_cli.evaluation.pairs",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'byoc_cli.evaluation' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

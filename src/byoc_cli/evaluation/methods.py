@@ -53,6 +53,7 @@ from byoc_cli.evaluation.method_features import (
     random_spec,
     weights_labels,
 )
+from byoc_cli.evaluation.method_names import METHOD_NAMES, parse_method_names
 from byoc_cli.pipeline.features import CloudFeatures
 from byoc_cli.pipeline.recipe import PAPER, PRESETS, RegistrationRecipe
 from byoc_cli.pipeline.register import (
@@ -78,16 +79,6 @@ __all__ = [
     "weights_labels",
 ]
 
-#: Every method name ``--method`` accepts, in table order.
-METHOD_NAMES = (
-    "byoc",
-    "byoc-random",
-    "fpfh-ransac",
-    "fpfh-procrustes",
-    "icp-point",
-    "icp-plane",
-    "identity",
-)
 #: FPFH voxel size (m): the fpfh recipe's, as ``byoc register --features fpfh``.
 FPFH_VOXEL_SIZE = PRESETS["fpfh"].features.reference_voxel
 
@@ -217,24 +208,6 @@ class Method:
             return MethodOutput(result.T_tgt_src.to(torch.float64), False, None)
         except RegistrationError as exc:
             return MethodOutput(eye, True, str(exc))
-
-
-def parse_method_names(values: Sequence[str]) -> list[str]:
-    """Split ``values`` on commas and whitespace, check the names, drop repeats (keep order).
-
-    Raises:
-        ValueError: an unknown name (the message lists the known ones) or no name at all.
-    """
-    names: list[str] = []
-    for value in values:
-        for part in value.replace(",", " ").split():
-            if part not in METHOD_NAMES:
-                raise ValueError(f"unknown method {part!r} (known: {', '.join(METHOD_NAMES)})")
-            if part not in names:
-                names.append(part)
-    if not names:
-        raise ValueError(f"no method given (known: {', '.join(METHOD_NAMES)})")
-    return names
 
 
 def build_methods(

@@ -12,11 +12,7 @@ from byoc_cli.fitting.procrustes import (
     _result_dtype,
     weighted_procrustes,
 )
-
-#: candidates of randomized Procrustes and correspondences per candidate (the paper's
-#: section 3.1; the registration recipe's defaults)
-NUM_SUBSETS = 100
-SUBSET_SIZE = 20
+from byoc_cli.limits import NUM_SUBSETS, SUBSET_SIZE
 
 
 def default_generator(device: torch.device | str = "cpu") -> torch.Generator:

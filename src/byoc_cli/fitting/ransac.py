@@ -17,11 +17,7 @@ from byoc_cli.fitting.procrustes import (
     weighted_procrustes,
 )
 from byoc_cli.fitting.randomized import default_generator
-
-#: RANSAC's limits: at most this many minimal sets, fewer once the best inlier share makes
-#: this confidence of having drawn an all-inlier set (the registration recipe's defaults)
-MAX_ITERATIONS = 100_000
-CONFIDENCE = 0.999
+from byoc_cli.limits import CONFIDENCE, MAX_ITERATIONS
 
 #: Upper bound on ``batch * K`` squared residuals scored at once (16 MB in float32, 32 MB in
 #: float64).

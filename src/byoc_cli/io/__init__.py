@@ -3,64 +3,54 @@ truth, atomic writes.
 
 Depends on nothing of byoc-cli's but :mod:`byoc_cli.errors`; works on numpy arrays. open3d
 is imported lazily, only to read PCD and XYZ/PTS files.
+
+The names below are imported from their modules (and numpy with them) when first used, so
+that the commands that only write files (and ``byoc COMMAND --help``) stay light.
 """
 
-from byoc_cli.io.atomic import atomic_write, atomic_write_bytes, atomic_write_text
-from byoc_cli.io.depth import (
-    Intrinsics,
-    depth_to_points,
-    read_depth_cloud,
-    read_depth_image,
-    read_intrinsics,
-)
-from byoc_cli.io.matrix import format_transform, read_transform, write_transform
-from byoc_cli.io.pointcloud import (
-    SUPPORTED_EXTENSIONS,
-    LoadedCloud,
-    check_units,
-    read_point_cloud,
-    write_ply,
-)
-from byoc_cli.io.threedmatch import (
-    BenchmarkScene,
-    GtInfoRecord,
-    GtRecord,
-    PreparedPair,
-    discover_benchmark,
-    discover_prepared_pairs,
-    read_gt_info,
-    read_gt_log,
-    read_gt_overlap,
-)
-from byoc_cli.io.threedmatch_write import write_gt_info, write_gt_log, write_gt_overlap
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "SUPPORTED_EXTENSIONS",
-    "BenchmarkScene",
-    "GtInfoRecord",
-    "GtRecord",
-    "Intrinsics",
-    "LoadedCloud",
-    "PreparedPair",
-    "atomic_write",
-    "atomic_write_bytes",
-    "atomic_write_text",
-    "check_units",
-    "depth_to_points",
-    "discover_benchmark",
-    "discover_prepared_pairs",
-    "format_transform",
-    "read_depth_cloud",
-    "read_depth_image",
-    "read_gt_info",
-    "read_gt_log",
-    "read_gt_overlap",
-    "read_intrinsics",
-    "read_point_cloud",
-    "read_transform",
-    "write_gt_info",
-    "write_gt_log",
-    "write_gt_overlap",
-    "write_ply",
-    "write_transform",
-]
+#: exported name -> its module
+_EXPORTS = {
+    "atomic_write": "byoc_cli.io.atomic",
+    "atomic_write_bytes": "byoc_cli.io.atomic",
+    "atomic_write_text": "byoc_cli.io.atomic",
+    "Intrinsics": "byoc_cli.io.depth",
+    "depth_to_points": "byoc_cli.io.depth",
+    "read_depth_cloud": "byoc_cli.io.depth",
+    "read_depth_image": "byoc_cli.io.depth",
+    "read_intrinsics": "byoc_cli.io.depth",
+    "format_transform": "byoc_cli.io.matrix",
+    "read_transform": "byoc_cli.io.matrix",
+    "write_transform": "byoc_cli.io.matrix",
+    "SUPPORTED_EXTENSIONS": "byoc_cli.io.pointcloud",
+    "LoadedCloud": "byoc_cli.io.pointcloud",
+    "check_units": "byoc_cli.io.pointcloud",
+    "read_point_cloud": "byoc_cli.io.pointcloud",
+    "write_ply": "byoc_cli.io.pointcloud",
+    "BenchmarkScene": "byoc_cli.io.threedmatch",
+    "GtInfoRecord": "byoc_cli.io.threedmatch",
+    "GtRecord": "byoc_cli.io.threedmatch",
+    "PreparedPair": "byoc_cli.io.threedmatch",
+    "discover_benchmark": "byoc_cli.io.threedmatch",
+    "discover_prepared_pairs": "byoc_cli.io.threedmatch",
+    "read_gt_info": "byoc_cli.io.threedmatch",
+    "read_gt_log": "byoc_cli.io.threedmatch",
+    "read_gt_overlap": "byoc_cli.io.threedmatch",
+    "write_gt_info": "byoc_cli.io.threedmatch_write",
+    "write_gt_log": "byoc_cli.io.threedmatch_write",
+    "write_gt_overlap": "byoc_cli.io.threedmatch_write",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'byoc_cli.io' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

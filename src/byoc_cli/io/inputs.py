@@ -51,6 +51,9 @@ SIZE_CAPS: dict[str, tuple[int, str]] = {
     "checkpoint": (2 * GiB, "a training checkpoint"),
     "pair list": (32 * MiB, "a pair list"),
     "config": (1 * MiB, "a config file"),
+    # a registration recipe is a few hundred bytes; the cap leaves room for a hostile file to
+    # reach the scan of io/tomlfile.py, which names the key it refuses
+    "recipe": (1 * MiB, "a recipe file"),
     "benchmark": (64 * MiB, "a gt.log, gt.info or gt_overlap.log file"),
     "trajectory": (32 * MiB, "a trajectory file"),
     "image": (256 * MiB, "an image"),

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:  # numpy is imported where it is used: the recipe reads this module's gate
+    import numpy as np
 
 #: the transformed cues the model reads, in order
 FEATURES = (
@@ -141,6 +143,8 @@ def _logit(x: float) -> float:
 
 def cue_vector(cues: Mapping[str, float]) -> np.ndarray:
     """``(len(FEATURES),)`` float64 model inputs of one run's cues."""
+    import numpy as np
+
     rmse = cues["rmse"]
     return np.array(
         [
@@ -164,11 +168,15 @@ def cue_vector(cues: Mapping[str, float]) -> np.ndarray:
 
 def cue_matrix(cues: Sequence[Mapping[str, float]]) -> np.ndarray:
     """``(R, len(FEATURES))`` float64: :func:`cue_vector` of each run."""
+    import numpy as np
+
     return np.stack([cue_vector(c) for c in cues]) if cues else np.zeros((0, len(FEATURES)))
 
 
 def sigmoid(z: np.ndarray | float) -> np.ndarray | float:
     """The logistic function, overflow-safe."""
+    import numpy as np
+
     return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(z, dtype=np.float64)))
 
 
@@ -180,6 +188,8 @@ def probability_right(
     Raises:
         ValueError: ``coefficients`` is not one weight per feature and a bias.
     """
+    import numpy as np
+
     w = np.asarray(coefficients, dtype=np.float64)
     if w.shape != (len(FEATURES) + 1,):
         raise ValueError(f"expected {len(FEATURES) + 1} coefficients, got {w.shape}")
@@ -200,6 +210,8 @@ def fit_logistic(
     Returns:
         ``(F + 1,)`` weights then bias.
     """
+    import numpy as np
+
     R, F = X.shape
     A = np.column_stack([X, np.ones(R)])
     w = np.zeros(F + 1)

@@ -29,8 +29,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-from byoc_cli.fitting.randomized import NUM_SUBSETS, SUBSET_SIZE
-from byoc_cli.fitting.ransac import CONFIDENCE, MAX_ITERATIONS
+from byoc_cli import limits
+from byoc_cli.limits import CONFIDENCE, MAX_ITERATIONS, NUM_SUBSETS, SUBSET_SIZE
 from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 #: feature types
@@ -196,6 +196,59 @@ def with_values(recipe: RegistrationRecipe, values: Mapping[str, Any]) -> Regist
 # ------------------------------------------------------------------ checks
 
 
+@dataclass(frozen=True)
+class FieldRule:
+    """What one field of a recipe accepts: its type and range, the one place both are said.
+
+    Attributes:
+        kind: ``"int"``, ``"number"`` (finite int or float, not bool), ``"bool"``,
+            ``"choice"`` (one of ``words``) or ``"text"`` (a string of at most ``high``
+            characters).
+        low, high: the closed range of an int or a number (a text: its longest length).
+        low_open: ``low`` itself is refused.
+        words: the strings a choice takes, or that a number also takes (``"auto"``).
+        optional: None is accepted (the shipped weights, the weights' voxel).
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    words: tuple[str, ...] = ()
+    optional: bool = False
+
+    def accepts(self, value: Any) -> bool:
+        """Whether ``value`` (from code or from a TOML tree: any type) is in the field's range."""
+        if value is None:
+            return self.optional
+        if isinstance(value, str) and value in self.words:
+            return True
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        if self.kind == "text":
+            return isinstance(value, str) and 0 < len(value) <= (self.high or 4096)
+        if self.kind == "int" and not _is_int(value):
+            return False
+        if self.kind in ("int", "number") and _is_number(value):
+            above = value > self.low if self.low_open else value >= self.low
+            return above and value <= self.high
+        return False
+
+    def expected(self) -> str:
+        """What the field takes, as the end of ``"<field> must be ..."``."""
+        if self.kind == "choice":
+            return f"one of {', '.join(self.words)}"
+        if self.kind == "bool":
+            return "true or false"
+        if self.kind == "text":
+            return "a file name"
+        show = (lambda v: str(int(v))) if self.kind == "int" else (lambda v: f"{v:g}")
+        low = f"({show(self.low)}" if self.low_open else f"[{show(self.low)}"
+        what = "an integer" if self.kind == "int" else "a number"
+        words = " or ".join(f'"{w}"' for w in self.words)
+        return f"{words + ' or ' if words else ''}{what} in {low}, {show(self.high)}]"
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
@@ -204,66 +257,66 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+#: the rule of every field of a recipe (``"stage.field"``, ``"seed"``) and of a file's
+#: ``preset``: a recipe in code (:func:`check_recipe`), a TOML file (:func:`recipe_from_dict`)
+#: and the commands' options (``cli/recipe_options.py``) are all checked against it
+RULES: dict[str, FieldRule] = {
+    "preset": FieldRule("choice", words=FEATURE_KINDS),
+    "features.kind": FieldRule("choice", words=FEATURE_KINDS),
+    "features.weights": FieldRule("text", high=4096, optional=True),
+    "features.voxel": FieldRule(
+        "number", limits.MIN_LENGTH, limits.MAX_LENGTH, words=("auto", "own")
+    ),
+    "features.reference_voxel": FieldRule(
+        "number", limits.MIN_VOXEL_SIZE, limits.MAX_VOXEL_SIZE, optional=True
+    ),
+    "matching.max_points": FieldRule("int", 0, limits.MAX_MATCH_POINTS),
+    "matching.correspondences": FieldRule("int", 3, limits.MAX_MATCH_POINTS),
+    "matching.mutual": FieldRule("bool"),
+    "fitting.estimator": FieldRule("choice", words=ESTIMATORS),
+    "fitting.inlier_factor": FieldRule("number", 0, limits.MAX_INLIER_FACTOR, low_open=True),
+    "fitting.ransac_iterations": FieldRule("int", 1, limits.MAX_RANSAC_ITERATIONS),
+    "fitting.ransac_confidence": FieldRule("number", 0, 1, low_open=True),
+    "fitting.num_subsets": FieldRule("int", 1, limits.MAX_NUM_SUBSETS),
+    "fitting.subset_size": FieldRule("int", 3, limits.MAX_SUBSET_SIZE),
+    "refinement.method": FieldRule("choice", words=REFINEMENTS),
+    "refinement.restarts": FieldRule("bool"),
+    "gate.min_confidence": FieldRule("number", 0, 1),
+    "gate.fallback": FieldRule("choice", words=FALLBACKS),
+    "seed": FieldRule("int", 0, 2**64 - 1),
+}
+
+
+def check_value(path: str, value: Any) -> None:
+    """Raise :class:`RecipeError` unless ``value`` is in the range of field ``path``."""
+    rule = RULES[path]
+    if not rule.accepts(value):
+        raise RecipeError(f"{path} must be {rule.expected()} (got {_describe(value)})")
+
+
+def _describe(value: Any) -> str:
+    """A short phrase for a value of any type (a file's value may be anything)."""
+    if isinstance(value, Mapping):
+        return "a table"
+    if isinstance(value, list | tuple):
+        return "an array"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int) and abs(value) >= 10**15:
+        return f"an integer of {len(str(abs(value)))} digits"
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def check_recipe(recipe: RegistrationRecipe) -> None:
-    """Raise :class:`RecipeError` naming the first field out of its range."""
-    f, m, fit, r, g = (
-        recipe.features,
-        recipe.matching,
-        recipe.fitting,
-        recipe.refinement,
-        recipe.gate,
-    )
-    checks = [
-        ("features.kind", f.kind in FEATURE_KINDS, f"one of {', '.join(FEATURE_KINDS)}"),
-        ("features.weights", f.weights is None or isinstance(f.weights, str), "a file name"),
-        (
-            "features.voxel",
-            f.voxel in ("auto", "own") or (_is_number(f.voxel) and f.voxel > 0),
-            '"auto", "own" or a positive number',
-        ),
-        (
-            "features.reference_voxel",
-            f.reference_voxel is None or (_is_number(f.reference_voxel) and f.reference_voxel > 0),
-            "a positive number",
-        ),
-        ("matching.max_points", _is_int(m.max_points) and m.max_points >= 0, "an integer >= 0"),
-        (
-            "matching.correspondences",
-            _is_int(m.correspondences) and m.correspondences >= 3,
-            "an integer >= 3",
-        ),
-        ("fitting.estimator", fit.estimator in ESTIMATORS, f"one of {', '.join(ESTIMATORS)}"),
-        (
-            "fitting.inlier_factor",
-            _is_number(fit.inlier_factor) and fit.inlier_factor > 0,
-            "a positive number",
-        ),
-        (
-            "fitting.ransac_iterations",
-            _is_int(fit.ransac_iterations) and fit.ransac_iterations >= 1,
-            "an integer >= 1",
-        ),
-        (
-            "fitting.ransac_confidence",
-            _is_number(fit.ransac_confidence) and 0 < fit.ransac_confidence <= 1,
-            "a number in (0, 1]",
-        ),
-        ("fitting.num_subsets", _is_int(fit.num_subsets) and fit.num_subsets >= 1, "an int >= 1"),
-        ("fitting.subset_size", _is_int(fit.subset_size) and fit.subset_size >= 3, "an int >= 3"),
-        ("refinement.method", r.method in REFINEMENTS, f"one of {', '.join(REFINEMENTS)}"),
-        ("refinement.restarts", isinstance(r.restarts, bool), "true or false"),
-        ("matching.mutual", isinstance(m.mutual, bool), "true or false"),
-        (
-            "gate.min_confidence",
-            _is_number(g.min_confidence) and 0 <= g.min_confidence <= 1,
-            "a number in [0, 1]",
-        ),
-        ("gate.fallback", g.fallback in FALLBACKS, f"one of {', '.join(FALLBACKS)}"),
-        ("seed", _is_int(recipe.seed) and 0 <= recipe.seed < 2**64, "an integer in [0, 2**64)"),
-    ]
-    for name, ok, expected in checks:
-        if not ok:
-            raise RecipeError(f"{name} must be {expected}")
+    """Raise :class:`RecipeError` naming the first field out of its range (:data:`RULES`)."""
+    for path in RULES:
+        if path == "preset":
+            continue
+        value: Any = recipe
+        for name in path.split("."):
+            value = getattr(value, name)
+        check_value(path, value)
 
 
 # ------------------------------------------------------------------ presets
@@ -356,50 +409,50 @@ _STAGES = {
 
 def recipe_from_dict(data: Mapping[str, Any]) -> RegistrationRecipe:
     """The recipe of a TOML-like tree: ``preset`` (default :data:`DEFAULT_PRESET`, or the
-    ``features.kind`` given) changed by the tables' fields.
+    ``features.kind`` given) changed by the tables' fields. Every key and value is checked
+    against :data:`RULES` before it is used.
 
     Raises:
-        RecipeError: an unknown table or field, or a value out of its range.
+        RecipeError: an unknown table or field, or a value of the wrong type or out of its
+            range (the message names the key).
     """
     known = {"preset", "seed", *_STAGES}
     for key in data:
         if key not in known:
-            raise RecipeError(f"unknown key {key!r} (known: {', '.join(sorted(known))})")
-    features = data.get("features", {})
-    kind = data.get("preset", features.get("kind") if isinstance(features, Mapping) else None)
-    base = preset(kind)
-    values: dict[str, Any] = {"seed": data.get("seed")}
+            raise RecipeError(f"unknown key {_describe(key)} (known: {', '.join(sorted(known))})")
+    values: dict[str, Any] = {}
+    for key in ("preset", "seed"):
+        if key in data:
+            check_value(key, data[key])
+            values[key] = data[key]
     for stage, kind_of in _STAGES.items():
         table = data.get(stage, {})
         if not isinstance(table, Mapping):
-            raise RecipeError(f"[{stage}] must be a table")
+            raise RecipeError(f"[{stage}] must be a table (got {_describe(table)})")
         names = [f.name for f in fields(kind_of)]
         for name, value in table.items():
             if name not in names:
-                raise RecipeError(f"unknown field {stage}.{name} (known: {', '.join(names)})")
+                raise RecipeError(
+                    f"unknown field {stage}.{_describe(name)[1:-1]} (known: {', '.join(names)})"
+                )
+            check_value(f"{stage}.{name}", value)
             values[f"{stage}.{name}"] = value
-    try:
-        return with_values(base, values)
-    except TypeError as exc:  # a value of the wrong kind that a comparison refused
-        raise RecipeError(str(exc)) from None
+    base = preset(values.pop("preset", values.get("features.kind")))
+    return with_values(base, values)
 
 
 def load_recipe(path: str | os.PathLike[str]) -> RegistrationRecipe:
-    """Read a recipe from a TOML file (module doc).
+    """Read a recipe from a TOML file (module doc) of at most 64 KiB, nested at most 16 deep,
+    keys of at most 8 dotted parts (:func:`byoc_cli.io.tomlfile.read_toml`).
 
     Raises:
-        InputError: the file cannot be read, is not TOML, or holds an unusable recipe (the
-            message names the file and the problem).
+        InputError: the file cannot be read, is not TOML, is too large or too deep, or holds
+            an unusable recipe (one line naming the file and the key).
     """
-    import tomllib
-
     from byoc_cli.errors import InputError
-    from byoc_cli.io.inputs import read_input
+    from byoc_cli.io.tomlfile import read_toml
 
-    try:
-        data = tomllib.loads(read_input(path, "config").decode("utf-8"))
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(path, f"is not a TOML recipe ({exc})") from None
+    data = read_toml(path, "recipe", "a TOML recipe")
     try:
         return recipe_from_dict(data)
     except RecipeError as exc:

@@ -214,7 +214,8 @@ def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoic
         raise RegistrationError(
             f"{large.label}: {large.radius / small.radius:.0f} times the size of "
             f"{small.label} (radius {large.radius:.3g} against {small.radius:.3g}): are they "
-            "in the same units? Give --voxel-size to register them as they are"
+            "in the same units? Give each one's factor to metres (--source-scale, "
+            "--target-scale), or --voxel-size to register them as they are"
         )
     low, high = TRAINED_RADIUS
     if low <= radius <= high:

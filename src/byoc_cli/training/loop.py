@@ -43,6 +43,7 @@ from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics, read_m
 from byoc_cli.training.run_folder import (
     CONFIG_FILE,
     WEIGHTS_FILE,
+    NewRunFolder,
     has_progress,
     start_run_folder,
     truncate_metrics,
@@ -76,8 +77,14 @@ class StepInfo(NamedTuple):
 
 @dataclass
 class TrainCallbacks:
-    """Hooks for progress display (called on rank 0 only). All optional."""
+    """Hooks for progress display (called on rank 0 only). All optional.
 
+    ``on_stage(stage, done, total)`` reports the work a variant does before its steps can
+    run (``self-posed``: its pseudo-poses, ``frames``, ``odometry`` and ``pairs``), so that a
+    run is never silent for minutes; ``on_start(step, total)`` then opens the steps.
+    """
+
+    on_stage: Callable[[str, int, int], None] | None = None
     on_start: Callable[[int, int], None] | None = None
     on_step: Callable[[StepInfo], None] | None = None
     on_log: Callable[[dict[str, Any]], None] | None = None
@@ -100,6 +107,7 @@ class TrainResult:
         weights_sha256: SHA-256 of the weights file.
         steps: steps done.
         first_loss, last_loss: mean training loss over the first and last log windows.
+        loss_lines: the ``train`` records (log windows) of the run folder.
         validation: the last validation metrics (empty without ``val_dir``).
         initial_validation: validation before the first step of the run (random init).
     """
@@ -110,6 +118,7 @@ class TrainResult:
     steps: int
     first_loss: float | None = None
     last_loss: float | None = None
+    loss_lines: int = 0
     validation: dict[str, float] = field(default_factory=dict)
     initial_validation: dict[str, float] = field(default_factory=dict)
 
@@ -162,9 +171,15 @@ class TrainTask(Protocol):
     def restore_position(self, state: dict[str, Any]) -> None:
         """Continue the data order from a checkpoint's :meth:`data_position`."""
 
-    def prepare(self, step: int, records: RunRecords) -> None:
+    def prepare(
+        self,
+        step: int,
+        records: RunRecords,
+        progress: Callable[[str, int, int], None] | None = None,
+    ) -> None:
         """Make the data of the step after ``step`` completed steps ready (called before the
-        first step, then before every step); may write the variant's own records."""
+        first step, then before every step); may write the variant's own records.
+        ``progress(stage, done, total)`` hears of long work (:class:`TrainCallbacks`)."""
 
     def next_batch(self) -> Any:
         """The next training batch."""
@@ -230,16 +245,36 @@ def run_training(
         (without ``resume``). TrainingError: the run diverged.
     """
     if deterministic is None:
-        return _Run(config, make_task, resume, callbacks, info).run()
+        return _run_or_undo(config, make_task, resume, callbacks, info)
     previous = (
         torch.are_deterministic_algorithms_enabled(),
         torch.is_deterministic_algorithms_warn_only_enabled(),
     )
     torch.use_deterministic_algorithms(deterministic, warn_only=True)
     try:
-        return _Run(config, make_task, resume, callbacks, info).run()
+        return _run_or_undo(config, make_task, resume, callbacks, info)
     finally:
         torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+
+
+def _run_or_undo(
+    config: TrainConfig,
+    make_task: Callable[[TrainConfig, DistInfo], TrainTask],
+    resume: bool,
+    callbacks: TrainCallbacks,
+    info: DistInfo,
+) -> TrainResult:
+    """A :class:`_Run`; a new run that fails (or is interrupted) before its first step leaves
+    its run folder as it found it (:class:`NewRunFolder`: none, when there was none)."""
+    found = NewRunFolder(Path(config.out)) if not resume and info.is_main else None
+    run = None
+    try:
+        run = _Run(config, make_task, resume, callbacks, info)
+        return run.run()
+    except BaseException:
+        if found is not None and (run is None or run.step == 0):
+            found.undo()
+        raise
 
 
 class _Run:
@@ -354,7 +389,7 @@ class _Run:
     # ------------------------------------------------------------------ the loop
     def run(self) -> TrainResult:
         config, info, task = self.config, self.info, self.task
-        task.prepare(self.step, self.records)
+        task.prepare(self.step, self.records, self._stage)
         if info.is_main:
             self.callbacks.call("on_start", self.step, config.steps)
             self._start_validation()
@@ -372,6 +407,11 @@ class _Run:
         self._release()
         return self.result
 
+    def _stage(self, stage: str, done: int, total: int) -> None:
+        """A task's progress before its steps (rank 0 reports it)."""
+        if self.info.is_main:
+            self.callbacks.call("on_stage", stage, done, total)
+
     def _release(self) -> None:
         """End a distributed run together: every process waits for rank 0's export and
         drops its DDP wrapper before the process group is destroyed (a process that tears
@@ -387,7 +427,7 @@ class _Run:
         rate = 0.0
         t_rate, rate_steps = time.perf_counter(), 0
         while self.step < config.steps:
-            task.prepare(self.step, self.records)
+            task.prepare(self.step, self.records, self._stage)
             batch = task.next_batch()
             with step_guard(task.model, self.step + 1, config.lr):
                 loss, values = task.step(self.module, batch)
@@ -442,6 +482,7 @@ class _Run:
         if train_records:
             result.first_loss = train_records[0]["loss"]
             result.last_loss = train_records[-1]["loss"]
+        result.loss_lines = len(train_records)
         self._plot(records)
         metrics = {}
         if result.last_loss is not None:

@@ -113,8 +113,8 @@ class PaperTask:
         self.loader.epoch = int(state["epoch"])
         self.loader.batch_in_epoch = int(state["batch_in_epoch"])
 
-    def prepare(self, step: int, records: Any) -> None:
-        del step, records
+    def prepare(self, step: int, records: Any, progress: Any = None) -> None:
+        del step, records, progress  # the data loaders are ready from the start
         if self.val_samples is None and self.val_set and self.info.is_main:
             self.val_samples = [self.val_set[i] for i in range(len(self.val_set))]
 

@@ -71,6 +71,47 @@ def start_run_folder(run_dir: Path) -> None:
         (run_dir / name).unlink(missing_ok=True)
 
 
+class NewRunFolder:
+    """What a new run finds at its run folder, so that a run that fails before its first step
+    leaves it as it was: no folder when there was none (nor the parents the run made), else
+    without the files and folders the run added (``config.json``, ``pseudo_pairs/``, ...).
+
+    Args:
+        run_dir: the run folder (``--out``), looked at when this is made.
+    """
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = Path(run_dir)
+        # the outermost folder this run will create (None: the run folder exists)
+        self.created: Path | None = None
+        for folder in (self.run_dir, *self.run_dir.parents):
+            if folder.exists() or folder.is_symlink():
+                break
+            self.created = folder
+        # the names the folder held (None: not a folder, nothing to undo)
+        self.entries: set[str] | None = set()
+        if self.created is None:
+            is_dir = self.run_dir.is_dir()
+            self.entries = {p.name for p in self.run_dir.iterdir()} if is_dir else None
+
+    def undo(self) -> None:
+        """Remove what the run created (best effort: a file that cannot go stays)."""
+        import shutil
+
+        if self.created is not None:
+            shutil.rmtree(self.created, ignore_errors=True)
+            return
+        if self.entries is None or not self.run_dir.is_dir():
+            return
+        for path in self.run_dir.iterdir():
+            if path.name in self.entries:
+                continue
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+
+
 def read_run_config(run_dir: str | Path) -> TrainConfig:
     """The configuration saved in a run folder.
 

@@ -187,15 +187,23 @@ def build_frame_cache(
     sequences: list[Any],
     pairs: list[list[PseudoPair]],
     cache: dict[tuple[int, int], CachedFrame] | None = None,
+    progress: Any = None,
 ) -> dict[tuple[int, int], CachedFrame]:
     """``(sequence, frame) -> CachedFrame`` for every frame of a kept pair (frames already in
-    ``cache``, e.g. an earlier round's, are not read again)."""
+    ``cache``, e.g. an earlier round's, are not read again); ``progress("cache", done,
+    total)`` after each frame read."""
     cache = dict(cache or {})
     voxel = CACHE_VOXEL_FACTOR * config.voxel_size
-    for s, (sequence, seq_pairs) in enumerate(zip(sequences, pairs, strict=True)):
-        for f in sorted({p.i for p in seq_pairs} | {p.j for p in seq_pairs}):
-            if (s, f) not in cache:
-                cache[(s, f)] = cache_frame(frame_points(sequence, f), voxel)
+    todo = [
+        (s, f)
+        for s, seq_pairs in enumerate(pairs)
+        for f in sorted({p.i for p in seq_pairs} | {p.j for p in seq_pairs})
+        if (s, f) not in cache
+    ]
+    for n, (s, f) in enumerate(todo):
+        cache[(s, f)] = cache_frame(frame_points(sequences[s], f), voxel)
+        if progress is not None:
+            progress("cache", n + 1, len(todo))
     return cache
 
 
@@ -310,14 +318,20 @@ class SelfPosedTask:
     def restore_position(self, state: dict[str, Any]) -> None:
         del state
 
-    def prepare(self, step: int, records: Any) -> None:
-        """Load the pairs of the round of the next step when it is not the loaded one."""
+    def prepare(self, step: int, records: Any, progress: Any = None) -> None:
+        """Load the pairs of the round of the next step when it is not the loaded one
+        (``progress(stage, done, total)`` hears of their pseudo-poses)."""
         number = self.config.round_of(step)
         if number == self.round:
             return
         config = self.config
         found = load_or_estimate_pairs(
-            config, self.run_dir, self.sequences, round_number=number, encoder=self.model
+            config,
+            self.run_dir,
+            self.sequences,
+            progress,
+            round_number=number,
+            encoder=self.model,
         )
         pairs = [pairs_from_json(r) for r in found]
         flat = [(s, p) for s, seq_pairs in enumerate(pairs) for p in seq_pairs]
@@ -328,7 +342,7 @@ class SelfPosedTask:
                 f"no self-posed pair passed verification (round {number}): give longer "
                 f"sequences, or smaller frame gaps (pair_gaps in --config, now {gaps})",
             )
-        self.frames = build_frame_cache(config, self.sequences, pairs, self.frames)
+        self.frames = build_frame_cache(config, self.sequences, pairs, self.frames, progress)
         logged = records.read()
         if not any(r.get("kind") == "round" and r.get("round") == number for r in logged):
             records.write(round_record(number, step, found))

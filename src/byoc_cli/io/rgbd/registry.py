@@ -9,6 +9,7 @@ register it at run time with :func:`register_layout`.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from byoc_cli.io.rgbd import redwood, scannet, threedmatch, tum
@@ -77,6 +78,23 @@ def detect_layout(folder: Path, names: list[str]) -> Layout | None:
     for layout in _REGISTRY:
         if layout.detect(folder, names):
             return layout
+    return None
+
+
+def layout_of_depth_image(path: Path) -> tuple[Layout, Path] | None:
+    """The layout of the sequence a single depth image belongs to, and its folder: the
+    image's own folder (3DMatch ``seq-01/frame-N.depth.png``) or its parent (TUM
+    ``SEQ/depth/T.png`` beside ``SEQ/depth.txt``, ScanNet and Redwood ``SEQ/depth/N.png``);
+    None when neither is a sequence of a registered layout (or cannot be listed)."""
+    folder = Path(path).absolute().parent
+    for candidate in (folder, folder.parent):
+        try:
+            names = sorted(os.listdir(candidate))
+        except OSError:
+            continue
+        layout = detect_layout(candidate, names)
+        if layout is not None:
+            return layout, candidate
     return None
 
 
