@@ -612,7 +612,7 @@ class Registrar:
         labels = ((source, "source"), (target, "target"))
         read = [pool.submit(self._loaded, cloud, label, scale, load) for cloud, label in labels]
         (points_src, name_src, size_src, t_src), (points_tgt, name_tgt, size_tgt, t_tgt) = (
-            job.result() for job in read
+            job.result() for job in _all_done(read)
         )
         t_scale = time.perf_counter()
         choice, voxels = None, [(None, None, 1.0)] * 2
@@ -632,7 +632,7 @@ class Registrar:
             )
             for k, (points, name) in enumerate(((points_src, name_src), (points_tgt, name_tgt)))
         ]
-        (src, f_src), (tgt, f_tgt) = (job.result() for job in jobs)
+        (src, f_src), (tgt, f_tgt) = (job.result() for job in _all_done(jobs))
         result = pool.submit(self.match, src, tgt, **settings).result()
         timings = {
             "load": t_src["load"] + t_tgt["load"],
@@ -719,6 +719,16 @@ class _Memo:
             raise
         mine.set_result(value)
         return value
+
+
+def _all_done(jobs: list[Future]) -> list[Future]:
+    """``jobs``, once every one of them has ended: a cloud that fails to load must not leave
+    the other one loading on a worker after :meth:`Registrar.register` has raised (its numpy
+    work beside the caller's next call deadlocked OpenBLAS in a test run)."""
+    from concurrent.futures import wait
+
+    wait(jobs)
+    return jobs
 
 
 def _local_frame(points: np.ndarray):
