@@ -5,8 +5,7 @@ method on the same pairs.
 The names below are imported from their modules (and torch with them) when first used.
 """
 
-from importlib import import_module
-from typing import Any
+from byoc_cli.lazy import lazy_exports
 
 #: exported name -> its module
 _EXPORTS = {
@@ -36,12 +35,4 @@ _EXPORTS = {
 
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'byoc_cli.evaluation' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports("byoc_cli.evaluation", _EXPORTS)

@@ -1,15 +1,14 @@
 """File input and output: point clouds, depth images, intrinsics, transforms, 3DMatch ground
 truth, atomic writes.
 
-Depends on nothing of byoc-cli's but :mod:`byoc_cli.errors`; works on numpy arrays. open3d
-is imported lazily, only to read PCD and XYZ/PTS files.
+Depends on nothing of byoc-cli's but :mod:`byoc_cli.errors` and :mod:`byoc_cli.lazy`; works on
+numpy arrays. open3d is imported lazily, only to read PCD and XYZ/PTS files.
 
 The names below are imported from their modules (and numpy with them) when first used, so
 that the commands that only write files (and ``byoc COMMAND --help``) stay light.
 """
 
-from importlib import import_module
-from typing import Any
+from byoc_cli.lazy import lazy_exports
 
 #: exported name -> its module
 _EXPORTS = {
@@ -45,12 +44,4 @@ _EXPORTS = {
 
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'byoc_cli.io' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports("byoc_cli.io", _EXPORTS)
