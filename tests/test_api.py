@@ -399,3 +399,25 @@ def test_a_registration_says_whether_it_passed_the_gate():
     assert result.passed == (result.confidence >= 0.45)
     strict = byoc_cli.Registrar(features="fpfh", fallback_below=1.0).register(src, tgt, seed=0)
     assert strict.confidence < 1.0 and strict.passed is False
+
+
+def test_only_clouds_sampled_along_lines_ask_the_fit_for_a_second_try(monkeypatch):
+    import byoc_cli.pipeline.register as register_module
+    from tests._rings import camera_scan, ring_scan
+
+    seen = []
+    real = register_module.estimate_transform
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("scan_lines"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(register_module, "estimate_transform", spy)
+    rings, camera = ring_scan(), camera_scan()
+    registrar = byoc_cli.Registrar(fallback=None)
+    for cloud in (rings, camera):
+        registrar.register(cloud, _moved(cloud)[0])
+    with pytest.warns(UserWarning, match="differs from the 0.025 m"):
+        explicit = byoc_cli.Registrar(fallback=None, voxel_size=0.5)
+    explicit.register(rings, _moved(rings)[0])
+    assert seen == [True, False, False]  # an explicit voxel: no auto measure, no flag

@@ -506,3 +506,37 @@ def test_kdtree_times_each_tree_and_the_former_grid_on_the_same_clouds(shared_da
     assert "pykdtree" in rows[0] and "cell grid (before)" in rows[0]
     assert [r.split()[0] for r in rows[1:]] == ["demo", "lidar", "lidar"]
     assert all(r.count(" s ") == 4 for r in rows[1:])
+
+
+def _scan_lines(*args: str) -> subprocess.CompletedProcess:
+    script = ROOT / "benchmarks" / "scan_lines.py"
+    return subprocess.run(
+        [sys.executable, str(script), *args], capture_output=True, text=True, timeout=600
+    )
+
+
+def test_scan_lines_refuses_bad_arguments_before_running(tmp_path):
+    taken = tmp_path / "taken.json"
+    taken.write_text("{}")
+    for args, message in (
+        (("--seeds", "0"), "--seeds must be at least 1, got 0"),
+        (("--json", str(taken)), f"--json {taken}: exists"),
+    ):
+        result = _scan_lines(*args)
+        assert result.returncode == 2 and message in result.stderr
+        assert "| rings |" not in result.stdout  # nothing ran
+    assert taken.read_text() == "{}"
+
+
+def test_scan_lines_registers_a_16_ring_street_with_and_without_the_measures(tmp_path):
+    rows = {}
+    for flag in ((), ("--without",)):
+        out = tmp_path / f"runs{len(flag)}.json"
+        result = _scan_lines("--pairs", "quick", "--seeds", "1", "--json", str(out), *flag)
+        assert result.returncode == 0, result.stderr
+        assert "| 16 | 1 | 4 m, 12 deg |" in result.stdout
+        rows[flag] = json.loads(out.read_text())["pairs"][0]["runs"][0]
+    with_measures, without = rows[()], rows[("--without",)]
+    # the rings washed out: a coarser feature voxel, and the sensor's 4 m found
+    assert with_measures["voxel"] > 3 * without["voxel"]
+    assert with_measures["right"] and with_measures["translation_m"] < 0.1

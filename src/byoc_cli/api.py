@@ -446,6 +446,7 @@ class Registrar:
             full,
             refine_voxel=src.refine_voxel,
             parallel=parallel,
+            scan_lines=self._scan_lines(src, tgt),
         )
         T = _about_origins(result.T_tgt_src.numpy(), src.origin, tgt.origin)
         T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s
@@ -478,6 +479,24 @@ class Registrar:
             passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
             return kept._replace(recipe=registration.recipe, passed=passed)
         return registration
+
+    def _scan_lines(self, src: Features, tgt: Features) -> bool:
+        """Whether a cloud of the pair is sampled along lines
+        (:attr:`~byoc_cli.pipeline.scale.CloudScale.line_voxel`, from its :meth:`cloud_scale`)
+        with its sensor at the origin: with an auto voxel and both clouds at hand, neither
+        registered about another origin (a georeferenced scan's origin is not its sensor's);
+        False otherwise."""
+        if not self.auto_voxel or src.cloud is None or tgt.cloud is None:
+            return False
+        if src.origin is not None or tgt.origin is not None:
+            return False
+        try:
+            return any(
+                self.cloud_scale(f.cloud, label).line_voxel > 0
+                for f, label in ((src, "source"), (tgt, "target"))
+            )
+        except RegistrationError:  # too few points to read a scale from: no lines to tell
+            return False
 
     def recipe_of(
         self,
@@ -570,6 +589,8 @@ class Registrar:
         names = ("source", "target")
         choice, voxels = None, [(None, None, 1.0)] * 2
         if self.auto_voxel:
+            for points, scale in zip(clouds, scales, strict=True):  # measured: kept for match
+                self._scales.get(points, None, lambda scale=scale: scale)
             choice = self.voxel_for(*scales)
             voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
         src, tgt = (

@@ -1,4 +1,4 @@
-"""Point spacing and cloud radius without units: against brute force, invariances."""
+"""Point spacing, cloud radius and scan lines without units: against brute force, invariances."""
 
 from __future__ import annotations
 
@@ -10,11 +10,16 @@ from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
 from byoc_cli.geometry.sampling import (
+    LINE_MIN_POINTS,
     SPACING_NEIGHBOURS,
+    _first_per_voxel,
     cloud_radius,
+    linear_share,
     local_frame,
     nearest_spacing,
 )
+from byoc_cli.geometry.voxel import voxelize
+from tests._rings import camera_scan, ring_scan
 
 
 def _brute_spacing(points: np.ndarray) -> float:
@@ -139,3 +144,58 @@ def test_no_stray_without_a_radius():
     pts = np.concatenate([np.zeros((10, 3)), [[1.0, 0, 0]]])  # most points in one place
     frame = local_frame(pts)
     assert frame.radius == 0 and frame.inside is None and not frame.moved
+
+
+def _parallel_lines(gap: float, step: float = 0.01, size: float = 4.0) -> np.ndarray:
+    """Points every ``step`` along lines ``gap`` apart on a plane: scan lines at their
+    sampling step."""
+    x, y = np.meshgrid(np.arange(0.0, size, step), np.arange(0.0, size, gap))
+    return np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+
+
+def test_the_kept_points_are_those_of_voxelize():
+    for pts in (ring_scan(), _surface(3000, 9, size=2.0) - 1.0):
+        points = torch.from_numpy(pts)
+        for voxel in (0.02, 0.1, 0.7):
+            expected = voxelize(points, voxel).point_index.numpy()
+            np.testing.assert_array_equal(_first_per_voxel(pts, voxel), expected)
+
+
+def test_lines_are_lines_until_the_voxel_reaches_across_them():
+    lines = torch.from_numpy(_parallel_lines(0.5))
+    # the neighbourhood reaches 2.5 voxels: one line below 0.2, two lines from there on
+    assert linear_share(lines, 0.05) == 1.0 and linear_share(lines, 0.19) == 1.0
+    assert linear_share(lines, 0.21) == 0.0 and linear_share(lines, 0.5) == 0.0
+
+
+def test_a_ring_scan_shows_its_rings_and_a_camera_grid_of_the_same_scene_does_not():
+    rings, camera = torch.from_numpy(ring_scan()), torch.from_numpy(camera_scan())
+    at_step = [linear_share(c, 1.8 * nearest_spacing(c)) for c in (rings, camera)]
+    assert at_step[0] > 0.9 and at_step[1] < 0.1
+    # the rings wash out as the voxel grows past their gaps (the far ones never do)
+    assert linear_share(rings, 0.1) > linear_share(rings, 0.4) > linear_share(rings, 1.2)
+
+
+def test_an_evenly_sampled_surface_has_no_lines_at_any_voxel():
+    surface = torch.from_numpy(_surface(20000, 10, size=2.0))
+    assert max(linear_share(surface, v) for v in (0.02, 0.05, 0.1, 0.2)) < 0.02
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(1e-3, 1e3))
+def test_the_share_of_lines_does_not_depend_on_the_unit(factor):
+    rings = ring_scan(rings=8, steps=600)
+    got = linear_share(torch.from_numpy(rings * factor), 0.3 * factor)
+    assert got == pytest.approx(linear_share(torch.from_numpy(rings), 0.3), abs=0.02)
+
+
+def test_linear_share_of_degenerate_clouds():
+    assert linear_share(torch.zeros(0, 3), 0.1) == 0.0
+    few = torch.from_numpy(_surface(LINE_MIN_POINTS - 1, 11))
+    assert linear_share(few, 0.01) == 0.0
+    spread = torch.tensor([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10], [10, 10, 10.0]])
+    assert linear_share(spread, 1.0) == 0.0  # no point has neighbours: none counted
+    with pytest.raises(ShapeError):
+        linear_share(torch.zeros(4, 2), 0.1)
+    with pytest.raises(ShapeError):
+        linear_share(torch.zeros(4, 3), 0.0)

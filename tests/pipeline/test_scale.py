@@ -1,4 +1,5 @@
-"""The auto voxel: trained range kept, other sizes scaled, density floor, refusals."""
+"""The auto voxel: trained range kept, other sizes scaled, density floor, scan lines washed
+out, refusals."""
 
 from __future__ import annotations
 
@@ -7,15 +8,21 @@ import pytest
 import torch
 
 from byoc_cli.errors import RegistrationError
+from byoc_cli.geometry.sampling import linear_share
 from byoc_cli.pipeline.scale import (
     CENTRE_RADIUS,
     DENSITY_FACTOR,
+    LINE_FREE_SHARE,
+    LINE_STEP,
+    MAX_LINE_VOXEL,
     TRAINED_RADIUS,
     CloudScale,
     choose_voxel,
     measure,
+    scan_line_voxel,
     trained_scale,
 )
+from tests._rings import camera_scan, ring_scan
 
 REF = 0.025
 
@@ -99,3 +106,69 @@ def test_points_that_fill_a_volume_are_refused_and_surfaces_are_not():
     with pytest.raises(RegistrationError, match=r"noise\.ply: the points fill a volume"):
         choose_voxel((plane, noise), REF)
     choose_voxel((plane, plane), REF)
+
+
+def _lines(gap: float, step: float = 0.01, size: float = 4.0) -> torch.Tensor:
+    x, y = np.meshgrid(np.arange(0.0, size, step), np.arange(0.0, size, gap))
+    return torch.from_numpy(np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]))
+
+
+def test_a_ring_scan_is_flagged_and_a_camera_scan_of_the_same_scene_is_not():
+    rings = measure(torch.from_numpy(ring_scan()), "rings.ply")
+    camera = measure(torch.from_numpy(camera_scan()), "camera.ply")
+    assert rings.line_voxel > 0 and camera.line_voxel == 0.0
+    # the toy scene is mostly open ground: its far rings stay lines up to the cap
+    assert rings.line_voxel == pytest.approx(MAX_LINE_VOXEL * rings.radius)
+    assert rings.line_voxel > 10 * rings.spacing
+
+
+def test_lines_wash_out_at_the_first_step_that_reaches_across_them():
+    lines = _lines(0.5)
+    got = measure(lines)
+    assert got.spacing == pytest.approx(0.01, rel=1e-6)
+    # the steps from the density voxel: the first whose neighbourhood (2.5 voxels) spans 0.5
+    steps = DENSITY_FACTOR * got.spacing * LINE_STEP ** np.arange(1, 12)
+    first = steps[np.argmax(2.5 * steps > 0.5)]
+    assert got.line_voxel == pytest.approx(first)
+    assert linear_share(lines, got.line_voxel) <= LINE_FREE_SHARE
+    assert linear_share(lines, got.line_voxel / LINE_STEP) > LINE_FREE_SHARE
+
+
+def test_an_evenly_sampled_surface_has_no_line_voxel():
+    xy = np.random.default_rng(3).uniform(0, 3, (20000, 2))
+    plane = torch.from_numpy(np.column_stack([xy, 0.1 * np.sin(2 * xy[:, 0])]))
+    got = measure(plane)
+    assert got.line_voxel == 0.0
+    assert scan_line_voxel(plane, got.spacing, got.radius) == 0.0
+    assert scan_line_voxel(plane, 0.0, got.radius) == 0.0
+
+
+@pytest.mark.parametrize("factor", [0.001, 1000.0])
+def test_the_line_voxel_scales_with_the_units(factor):
+    lines = _lines(0.5)
+    assert measure(lines * factor).line_voxel == pytest.approx(
+        measure(lines).line_voxel * factor, rel=1e-9
+    )
+
+
+def test_scan_lines_raise_the_feature_voxel_but_not_the_refinement():
+    rings = measure(torch.from_numpy(ring_scan()), "rings.ply")
+    even = rings._replace(line_voxel=0.0)
+    got = choose_voxel((rings, even), REF)
+    before = choose_voxel((even, even), REF)
+    assert got.voxel_size == pytest.approx(rings.line_voxel) and got.voxel_size > before.voxel_size
+    assert got.refine_voxel == before.refine_voxel
+    assert got.scan_lines and not before.scan_lines
+    assert "scan lines" in got.reason and "scan lines" not in before.reason
+    import json
+
+    clouds = json.loads(json.dumps(got.as_dict()))["clouds"]
+    assert clouds[0]["line_voxel"] == pytest.approx(rings.line_voxel)
+    assert clouds[1]["line_voxel"] == 0.0
+
+
+def test_a_line_voxel_below_the_chosen_voxel_changes_nothing():
+    scale = CloudScale(10_000, 0.005, 1.0)
+    fine_lines = scale._replace(line_voxel=0.01)
+    assert choose_voxel((fine_lines,), REF).voxel_size == REF
+    assert choose_voxel((fine_lines,), REF).scan_lines

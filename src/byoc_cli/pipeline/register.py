@@ -65,6 +65,9 @@ class RegisterConfig:
         restart_floor: the restarts run only for a result whose confidence before them (with
             :data:`NO_RESTARTS`, their most confident cues) reaches this: below it they could
             only lower it (:func:`restart_floor` of the gate's ``--min-confidence``).
+        min_confidence: the gate (``--min-confidence``): an identity-like result of clouds
+            sampled along lines gives way to a second try that reaches it
+            (:func:`estimate_transform`).
         mutual: keep only mutual nearest neighbours before the top-k ratio-test selection
             (:func:`byoc_cli.matching.ratio_test_correspondences`).
         seed: seeds every random choice (subset, sampling).
@@ -84,6 +87,7 @@ class RegisterConfig:
     mutual: bool = PAPER.matching.mutual
     restarts: bool = PAPER.refinement.restarts
     restart_floor: float = restart_floor(PAPER.gate.min_confidence)
+    min_confidence: float = PAPER.gate.min_confidence
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
@@ -119,6 +123,7 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         mutual=recipe.matching.mutual,
         restarts=recipe.refinement.restarts,
         restart_floor=restart_floor(recipe.gate.min_confidence),
+        min_confidence=recipe.gate.min_confidence,
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
     )
@@ -192,6 +197,7 @@ def estimate_transform(
     clouds: tuple[torch.Tensor, torch.Tensor] | None = None,
     refine_voxel: float | None = None,
     parallel: Parallel | None = None,
+    scan_lines: bool = False,
 ) -> RegistrationResult:
     """Match two featured clouds and fit ``T_tgt_src`` (no I/O, no feature extraction).
 
@@ -200,6 +206,19 @@ def estimate_transform(
     with (None: ``voxel_size``); ``parallel``: runs independent pieces of the matching and
     the refinement side by side (:func:`byoc_cli.threads.side_by_side`; None: in turn; the
     result is the same bytes).
+
+    ``scan_lines``: the clouds are sampled along lines fixed to the sensor (a spinning LiDAR's
+    rings: :attr:`byoc_cli.pipeline.scale.VoxelChoice.scan_lines`), in the sensor's frame.
+    Such lines match themselves where the sensor did not move, so a result that is
+    identity-like (:func:`identity_like`: the source origin lands within the refinement's
+    inlier distance, ``inlier_factor * refine_voxel``, of the target origin, whatever the
+    rotation about it; the refinement pulls a match of the lines onto the lines, where they
+    meet point for point) is suspect: the correspondences it explains (within the feature
+    inlier threshold) are set aside and the rest are fitted again (:func:`_second_try`). A
+    second result that moves the origin by the feature inlier threshold at least (a motion
+    the features tell from the identity) and reaches ``config.min_confidence`` replaces it (a
+    sensor that did not move leaves no such second motion: its result stays); the result's
+    ``timings`` then hold ``second_try``.
     """
     timer = _Timer()
     start = time.perf_counter()
@@ -223,43 +242,17 @@ def estimate_transform(
     p = points_src[corr.src_idx].to(torch.float64)
     q = points_tgt[corr.tgt_idx].to(torch.float64)
     w = corr.weight.detach().to(torch.float64)
-    start = timer("match", start)
+    timer("match", start)
 
-    threshold = config.inlier_factor * voxel_size
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        fit = _fit(p, q, w, config, threshold, generator)
-    if caught:  # a degenerate fit (every minimal set rejected): no transform to report
-        reason = str(caught[0].message).split(";")[0]  # not the estimator's fallback
-        raise RegistrationError(f"no transform could be fitted ({reason})")
-    T = fit.T_tgt_src.to(torch.float64)
-    T_coarse = T
-    start = timer("fit", start)
-
-    full_src, full_tgt = clouds if clouds is not None else (src.points, tgt.points)
-    refine_voxel = refine_voxel or voxel_size
-    if config.refine == "multiscale":
-        refinement = refine_multiscale(full_src, full_tgt, T, refine_voxel, parallel=parallel)
-        start = timer("refine", start)
-    else:  # the fit cues of the result as it is
-        refinement = measure_fit(full_src, full_tgt, T, refine_voxel)
-        start = timer("measure", start)
-    judge = _Judge(src, tgt, (p, q, w), T_coarse, voxel_size, threshold, config)
-    verdict = judge(refinement, NO_RESTARTS)
-    start = timer("verify", start)
-    # restarts can only lower the confidence of a result that stays where it is (their cues
-    # at their best are the ones above), so a result that cannot reach the floor skips them
-    if (
-        config.refine == "multiscale"
-        and config.restarts
-        and verdict.confidence >= config.restart_floor
-    ):
-        refinement, restart_cues = _restart(
-            (full_src, full_tgt), refinement, refine_voxel, parallel
-        )
-        start = timer("restarts", start)
-        verdict = judge(refinement, restart_cues)
-        timer("verify", start)
+    full = clouds if clouds is not None else (src.points, tgt.points)
+    solver = _Solver(src, tgt, full, voxel_size, refine_voxel or voxel_size, config, parallel)
+    refinement, verdict = solver.solve((p, q, w), (p, q, w), generator, timer)
+    if scan_lines and identity_like(refinement.T_tgt_src, solver.still):
+        start = time.perf_counter()
+        second = _second_try(solver, (p, q, w), refinement.T_tgt_src, generator)
+        timer("second_try", start)
+        if second is not None:
+            refinement, verdict = second
     T = refinement.T_tgt_src
     cues, confidence, num_inliers, overlap = verdict
     return RegistrationResult(
@@ -271,10 +264,97 @@ def estimate_transform(
         overlap=overlap,
         num_points_src=int(src.points.shape[0]),
         num_points_tgt=int(tgt.points.shape[0]),
-        inlier_threshold=threshold,
+        inlier_threshold=solver.threshold,
         timings=timer.timings,
         cues=cues,
     )
+
+
+def identity_like(T: torch.Tensor, threshold: float) -> bool:
+    """Whether ``T (4, 4)`` leaves the origin within ``threshold`` of itself
+    (``|t| < threshold``), whatever its rotation: what lines fixed to a sensor at the origin
+    support when they match themselves (a spinning LiDAR's rings are circles about it)."""
+    return float(torch.linalg.vector_norm(T[:3, 3])) < threshold
+
+
+class _Solver:
+    """The robust fit, refinement and verdict of one pair's correspondences: the kept points
+    of ``src`` and ``tgt``, the ``full`` clouds the refinement runs on, the feature and
+    refinement voxels and the settings of ``config``."""
+
+    def __init__(self, src, tgt, full, voxel_size, refine_voxel, config, parallel):
+        self.src, self.tgt, self.full = src, tgt, full
+        self.voxel_size, self.refine_voxel = voxel_size, refine_voxel
+        self.config, self.parallel = config, parallel
+        self.threshold = config.inlier_factor * voxel_size
+        #: the translation below which a result is identity-like (:func:`identity_like`)
+        self.still = config.inlier_factor * refine_voxel
+
+    def solve(self, fitted, judged, generator, timer) -> tuple[Refinement, _Verdict]:
+        """The refined robust fit of the correspondences ``fitted`` (``p, q (K, 3)``, ``w
+        (K,)``) and its verdict on the correspondences ``judged``.
+
+        Raises:
+            RegistrationError: the fit is degenerate (every minimal set rejected).
+        """
+        config, full = self.config, self.full
+        start = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fit = _fit(*fitted, config, self.threshold, generator)
+        if caught:  # a degenerate fit (every minimal set rejected): no transform to report
+            reason = str(caught[0].message).split(";")[0]  # not the estimator's fallback
+            raise RegistrationError(f"no transform could be fitted ({reason})")
+        T = fit.T_tgt_src.to(torch.float64)
+        start = timer("fit", start)
+        if config.refine == "multiscale":
+            refinement = refine_multiscale(*full, T, self.refine_voxel, parallel=self.parallel)
+            start = timer("refine", start)
+        else:  # the fit cues of the result as it is
+            refinement = measure_fit(*full, T, self.refine_voxel)
+            start = timer("measure", start)
+        judge = _Judge(self.src, self.tgt, judged, T, self.voxel_size, self.threshold, config)
+        verdict = judge(refinement, NO_RESTARTS)
+        start = timer("verify", start)
+        # restarts can only lower the confidence of a result that stays where it is (their
+        # cues at their best are the ones above), so a result that cannot reach the floor
+        # skips them
+        if (
+            config.refine == "multiscale"
+            and config.restarts
+            and verdict.confidence >= config.restart_floor
+        ):
+            refinement, restart_cues = _restart(full, refinement, self.refine_voxel, self.parallel)
+            start = timer("restarts", start)
+            verdict = judge(refinement, restart_cues)
+            timer("verify", start)
+        return refinement, verdict
+
+
+def _second_try(
+    solver: _Solver, correspondences, T: torch.Tensor, generator: torch.Generator
+) -> tuple[Refinement, _Verdict] | None:
+    """The fit of the correspondences ``(p, q, w)`` that the identity-like ``T (4, 4)`` does
+    not explain (residual at or above the feature inlier threshold), judged on all of them;
+    None when fewer than 3 are left, the fit fails, its result leaves the origin within the
+    feature inlier threshold (identity-like at the features' scale) or is below
+    ``min_confidence``."""
+    p, q, w = correspondences
+    rest = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1) >= solver.threshold
+    if int(rest.sum()) < 3:
+        return None
+    try:
+        refinement, verdict = solver.solve(
+            (p[rest], q[rest], w[rest]), correspondences, generator, _Timer()
+        )
+    except RegistrationError:
+        return None
+    if (
+        identity_like(refinement.T_tgt_src, solver.threshold)
+        or verdict.confidence < solver.config.min_confidence
+    ):
+        return None
+    return refinement, verdict
 
 
 #: the restart cues of a result without restarts: no doubt (their most confident values)
