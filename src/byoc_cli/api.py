@@ -181,6 +181,9 @@ class Registrar:
         # (of the learned registrar) and its features at a voxel (of the fallback's)
         self._scales = _Memo(self.REFINE_CACHE)
         self._features_memo = _Memo(self.REFINE_CACHE)
+        # per cloud array, where it is registered (its origin and strays): read by its
+        # features and again by its refinement levels
+        self._frames = _Memo(self.REFINE_CACHE)
 
     @property
     def weights_sha256(self) -> str | None:
@@ -211,7 +214,7 @@ class Registrar:
             if hit is not None and hit[0] is feats.cloud and hit[1].voxel_size == voxel:
                 self._refine_clouds.move_to_end(key)
                 return hit[1]
-            prepared = RefineCloud(_local_frame(feats.cloud).local(feats.cloud), voxel)
+            prepared = RefineCloud(self._frame(feats.cloud).local(feats.cloud), voxel)
             self._refine_clouds[key] = (feats.cloud, prepared)  # holds the array: id stays its
             while len(self._refine_clouds) > self.REFINE_CACHE:
                 self._refine_clouds.popitem(last=False)
@@ -225,6 +228,11 @@ class Registrar:
         cloud. Threads may build different levels of one cloud at once."""
         if feats.cloud is not None:
             self._refine_cloud(feats).prepare(source=source, target=target, levels=levels)
+
+    def _frame(self, points: np.ndarray):
+        """:func:`~byoc_cli.geometry.sampling.local_frame` of ``points (N, 3)``, computed once
+        per array while among the most recently used."""
+        return self._frames.get(points, None, lambda: _local_frame(points))
 
     def _make_extractor(self, weights: Any, voxel_size: float | None):
         from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
@@ -358,7 +366,7 @@ class Registrar:
         from byoc_cli.pipeline.scale import check_radius
 
         voxel = voxel_size or self.voxel_size
-        frame = _local_frame(points)
+        frame = self._frame(points)
         check_radius(frame.radius, label)
         subset = _keep_subset(len(points), keep)
         if frame.inside is not None:  # strays left out
