@@ -269,8 +269,8 @@ def test_features_from_a_share_of_the_points_index_the_whole_cloud():
 def test_a_loose_depth_image_reads_millimetres_and_refuses_an_implausible_depth(tmp_path):
     from PIL import Image
 
-    from byoc_cli.api_types import depth_scale_of, load_cloud
     from byoc_cli.errors import InputError
+    from byoc_cli.pipeline.inputs import depth_scale_of, load_cloud
 
     K = tmp_path / "K.txt"
     K.write_text("50 0 32\n0 50 24\n0 0 1\n")
@@ -309,7 +309,7 @@ def _check_signature(line: str) -> None:
     import ast
     import inspect
 
-    from byoc_cli import api
+    from byoc_cli.pipeline.engine_recipe import FROM_RECIPE
 
     head, _, returns = line.partition(" -> ")
     name, _, params = head.partition("(")
@@ -342,7 +342,7 @@ def _check_signature(line: str) -> None:
         if node is None:
             assert parameter.default is inspect.Parameter.empty, (line, parameter.name)
         elif isinstance(node, ast.Name) and node.id == "RECIPE":
-            assert parameter.default is api._RECIPE, (line, parameter.name)
+            assert parameter.default is FROM_RECIPE, (line, parameter.name)
         else:
             assert ast.literal_eval(node) == parameter.default, (line, parameter.name)
             assert type(ast.literal_eval(node)) is type(parameter.default), (line, parameter.name)

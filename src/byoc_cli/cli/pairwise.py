@@ -20,7 +20,7 @@ from byoc_cli.cli.options import DEPTH_SCALE, SCALE, apply, float_option, path_o
 log = logging.getLogger("byoc")
 
 
-#: inputs read as depth images (byoc_cli.api.DEPTH_EXTENSIONS, without importing numpy)
+#: inputs read as depth images (byoc_cli.pipeline.inputs.DEPTH_EXTENSIONS, without importing numpy)
 DEPTH_EXTENSIONS = (".png", ".tif", ".tiff")
 
 
@@ -75,15 +75,15 @@ def cloud_factors(options: dict) -> tuple[tuple[float | None, float | None], boo
 
 
 def register_pair(made, source, target, factors: tuple, load: dict):
-    """Register ``source`` onto ``target`` with ``made`` (a :class:`~byoc_cli.api.Registrar`)
-    and each cloud's factor to metres (:func:`cloud_factors`); ``load``: ``intrinsics`` and
-    ``depth_scale``.
+    """Register ``source`` onto ``target`` with ``made`` (a
+    :class:`~byoc_cli.pipeline.registrar.Registrar`) and each cloud's factor to metres
+    (:func:`cloud_factors`); ``load``: ``intrinsics`` and ``depth_scale``.
 
     With one factor for both, the registrar reads the files (``scale``). With two, the source
     is read into the target's units (its factor over the target's) and both go to the
     registrar as arrays at the target's factor: ``T`` stays rigid and is in the target's units.
     """
-    from byoc_cli.api import load_cloud
+    from byoc_cli.pipeline.inputs import load_cloud
 
     src, tgt = factors
     if src == tgt:
@@ -94,13 +94,13 @@ def register_pair(made, source, target, factors: tuple, load: dict):
 
 
 def registrar(recipe, device: str):
-    """The API's :class:`~byoc_cli.api.Registrar` of a command's recipe.
+    """The :class:`~byoc_cli.pipeline.registrar.Registrar` of a command's recipe.
 
     Raises:
         click.UsageError: byoc features, no weights file and no shipped weights.
     """
-    from byoc_cli.api import Registrar
     from byoc_cli.pipeline.default_weights import default_weights_path
+    from byoc_cli.pipeline.registrar import Registrar
 
     features, weights = recipe.features.kind, recipe.features.weights
     if features == "fpfh" and weights is not None:
@@ -165,10 +165,10 @@ def known_unit(result, pair: tuple[Path, Path], factors_given: bool) -> str | No
 
 def depth_scale_used(path: Path, given: float | None) -> float | None:
     """The depth scale a depth-image input was read with (the option's, else its layout's,
-    else 1000: :func:`byoc_cli.api_types.depth_scale_of`); None for a point cloud."""
+    else 1000: :func:`byoc_cli.pipeline.inputs.depth_scale_of`); None for a point cloud."""
     if Path(path).suffix.lower() not in DEPTH_EXTENSIONS:
         return None
-    from byoc_cli.api_types import depth_scale_of
+    from byoc_cli.pipeline.inputs import depth_scale_of
 
     value, source = depth_scale_of(path, given)
     log.info("%s: depth scale %g (%s)", path, value, source)

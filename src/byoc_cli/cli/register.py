@@ -116,8 +116,8 @@ def register(
         {"-o": output, "--aligned": aligned, "--json": json_path},
         inputs=(source, target, o.intrinsics, recipe_file, _path(recipe.features.weights)),
     )
-    from byoc_cli.api import load_cloud
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
+    from byoc_cli.pipeline.inputs import load_cloud
 
     made = registrar(recipe, o.device)
     factors, factors_given = cloud_factors(options)

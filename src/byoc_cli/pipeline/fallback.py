@@ -1,0 +1,104 @@
+"""The judgement's second opinion: when the learned features' registration of a pair is
+below the gate, the same clouds are registered again with FPFH features (at the same scale,
+refined the same way) and the more confident result is kept; the result's ``fallback`` says
+what ran."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from byoc_cli.errors import RegistrationError
+from byoc_cli.pipeline.results import Features, Registration
+
+
+class Fallback:
+    """The FPFH registrar of a learned one, made on first use.
+
+    Args:
+        voxel_size: ``"auto"``, or the FPFH voxel in metres (twice the learned one: the
+            features' reference voxels are 5 cm and 2.5 cm).
+    """
+
+    def __init__(self, voxel_size: float | str) -> None:
+        self.voxel_size = voxel_size
+        self._registrar = None
+        self._lock = threading.Lock()
+
+    def registrar(self):
+        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread)."""
+        from byoc_cli.pipeline.registrar import Registrar
+
+        with self._lock:
+            if self._registrar is None:
+                self._registrar = Registrar("fpfh", voxel_size=self.voxel_size, threads=1)
+            return self._registrar
+
+    def second_opinion(
+        self, learned: Any, first: Registration, src: Features, tgt: Features, seed: int
+    ) -> Registration:
+        """``first`` (a registration by ``learned``, below its gate) or, when more confident,
+        the FPFH registration of the same clouds (``src.cloud``, ``tgt.cloud``); the kept
+        result's ``fallback`` and ``timings["fallback"]`` say what ran. Without both clouds:
+        ``first`` as it is."""
+        if src.cloud is None or tgt.cloud is None:
+            return first
+        start = time.perf_counter()
+        fpfh = self.registrar()
+        try:
+            scales = None
+            if fpfh.auto_voxel:  # the scales the learned choice read
+                scales = [
+                    learned.cloud_scale(f.cloud, label)
+                    for f, label in ((src, "source"), (tgt, "target"))
+                ]
+            second = register_clouds(
+                fpfh, (src.cloud, tgt.cloud), scales, refine="multiscale", seed=seed
+            )
+        except RegistrationError:
+            second = None
+        seconds = time.perf_counter() - start
+        used = second is not None and second.confidence > first.confidence
+        note = {
+            "features": "fpfh",
+            "used": used,
+            "learned_confidence": first.confidence,
+            "confidence": None if second is None else second.confidence,
+            "seconds": seconds,
+        }
+        timings = {**first.timings, "fallback": seconds}
+        if not used:
+            return first._replace(timings=timings, fallback=note)
+        T = second.T_tgt_src.copy()
+        T[:3, 3] /= src.scale
+        return second._replace(T_tgt_src=T, timings=timings, fallback=note)
+
+
+def register_clouds(
+    registrar: Any, clouds: tuple[np.ndarray, np.ndarray], scales: list | None, **settings: Any
+) -> Registration:
+    """What ``registrar.register`` gives for two arrays already in metres (``scale=1.0``),
+    from their measured ``scales`` (auto voxel; :class:`~byoc_cli.pipeline.scale.CloudScale`,
+    labelled ``"source"`` and ``"target"``) and the features of each array at its voxel
+    computed once while among the most recent (a fallback registers the same clouds in many
+    pairs of a batch); the same result, bytes and all. ``settings``: the keywords of
+    :meth:`~byoc_cli.pipeline.registrar.Registrar.match`."""
+    start = time.perf_counter()
+    names = ("source", "target")
+    choice, voxels = None, [(None, None, 1.0)] * 2
+    if registrar.auto_voxel:
+        for points, scale in zip(clouds, scales, strict=True):  # measured: kept for match
+            registrar.remember_scale(points, scale)
+        choice = registrar.voxel_for(*scales)
+        voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
+    src, tgt = (
+        registrar.features_at(points, names[k], voxels[k]) for k, points in enumerate(clouds)
+    )
+    result = registrar.match(src, tgt, **settings)
+    return result._replace(
+        timings={**result.timings, "total": time.perf_counter() - start},
+        voxel_choice=None if choice is None else choice.as_dict(),
+    )

@@ -1,0 +1,113 @@
+"""The sequence of one pair through the register engine (the stages:
+:mod:`byoc_cli.pipeline.registrar`)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from byoc_cli.pipeline.memo import InPlace, all_done
+from byoc_cli.pipeline.results import Features, Registration
+from byoc_cli.threads import in_worker
+
+
+def register_pair(
+    made: Any, clouds: tuple[Any, Any], scale: float | None, load: dict, settings: dict
+) -> Registration:
+    """Register ``clouds`` (source, target: arrays or files) with ``made``, a
+    :class:`~byoc_cli.pipeline.registrar.Registrar`: read and measure both side by side on its
+    workers, choose the pair's voxel, extract both clouds' features and build their
+    refinement levels side by side, then match, fit, refine and judge them
+    (:meth:`~byoc_cli.pipeline.registrar.Registrar.match`).
+
+    Args:
+        scale: the inputs' factor to metres (None: see ``Featurizer.load``).
+        load: ``intrinsics`` and ``depth_scale`` for depth-image files.
+        settings: the keywords of ``Registrar.match``.
+
+    Returns:
+        the registration; its ``timings`` add ``load``, ``scale``, ``features_src``,
+        ``features_tgt``, ``prepare_src``, ``prepare_tgt`` and ``total`` (wall time).
+    """
+    start = time.perf_counter()
+    refine = settings.get("refine") or made.recipe.refinement.method
+    multiscale = refine == "multiscale"
+    pool = InPlace() if in_worker() else made.executor()
+    labels = ("source", "target")
+    read = [
+        pool.submit(_loaded, made, c, k, scale, load) for c, k in zip(clouds, labels, strict=True)
+    ]
+    (src_points, src_name, src_scale, t_src), (tgt_points, tgt_name, tgt_scale, t_tgt) = (
+        job.result() for job in all_done(read)
+    )
+    t_scale = time.perf_counter()
+    choice, voxels = None, [(None, None, 1.0)] * 2
+    if made.auto_voxel:
+        choice = made.voxel_for(src_scale, tgt_scale)
+        voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
+    t_choice = time.perf_counter() - t_scale
+    jobs = [
+        pool.submit(
+            _prepared_features,
+            made,
+            points,
+            name,
+            scale,
+            voxels[k],
+            multiscale and k == 0,
+            multiscale and k == 1,
+        )
+        for k, (points, name) in enumerate(((src_points, src_name), (tgt_points, tgt_name)))
+    ]
+    (src, f_src), (tgt, f_tgt) = (job.result() for job in all_done(jobs))
+    result = pool.submit(made.match, src, tgt, **settings).result()
+    timings = {
+        "load": t_src["load"] + t_tgt["load"],
+        "scale": t_src["scale"] + t_tgt["scale"] + t_choice,
+        "features_src": f_src["features"],
+        "features_tgt": f_tgt["features"],
+        "prepare_src": f_src["prepare"],
+        "prepare_tgt": f_tgt["prepare"],
+        **result.timings,
+        "total": time.perf_counter() - start,
+    }
+    return result._replace(
+        timings=timings, voxel_choice=None if choice is None else choice.as_dict()
+    )
+
+
+def _loaded(
+    made: Any, cloud: Any, label: str, scale: float | None, load: dict
+) -> tuple[np.ndarray, str, Any, dict[str, float]]:
+    """Read one cloud and (auto voxel) measure it: ``(points, name, CloudScale | None,
+    seconds of each step)``."""
+    start = time.perf_counter()
+    points, name = made.load(cloud, label, scale, **load)
+    loaded = time.perf_counter()
+    size = made.cloud_scale(points, name) if made.auto_voxel else None
+    return points, name, size, {"load": loaded - start, "scale": time.perf_counter() - loaded}
+
+
+def _prepared_features(
+    made: Any,
+    points: np.ndarray,
+    name: str,
+    scale: float | None,
+    voxel: tuple,
+    as_source: bool,
+    as_target: bool,
+) -> tuple[Features, dict[str, float]]:
+    """Extract one cloud's features at ``voxel`` (``(voxel_size, refine_voxel, keep)``)
+    and prepare its refinement levels; the features and the seconds of each step."""
+    start = time.perf_counter()
+    feats = made.extract_points(points, scale, name, *voxel)
+    extracted = time.perf_counter()
+    if as_target:  # the finer (larger) levels to the next idle worker, the first here
+        made.executor().submit(made.prepare_refinement, feats, as_source, True, (2, 1))
+        made.prepare_refinement(feats, as_source, True, (0,))
+    elif as_source:
+        made.prepare_refinement(feats, True, False)
+    done = time.perf_counter()
+    return feats, {"features": extracted - start, "prepare": done - extracted}
