@@ -136,7 +136,8 @@ def register_batch(
     the summary recorded them count towards the exit code.
     """
     from byoc_cli.errors import InputError
-    from byoc_cli.io.outputs import OutputSet, new_folders
+    from byoc_cli.io.folders import new_folders
+    from byoc_cli.io.outputs import OutputSet
     from byoc_cli.io.pairlist import read_pair_list
     from byoc_cli.io.pairlist import shard as take_shard
 
