@@ -87,9 +87,10 @@ INTERNAL_RANKS = {
         "pointwise": 2,
         "__init__": 3,
     },
-    # one training loop: its parts below it, the loop and the variants that supply their data
-    # and step (paper, self_posed) on one rank (they never import each other), and the
-    # trainer that picks a variant on top
+    # one training loop: its parts below it (the task protocol a variant meets, then the run
+    # state that checkpoints a task), the loop and the variants that supply their data and
+    # step (paper, self_posed) on one rank (they never import each other), and the trainer
+    # that picks a variant on top
     "byoc_cli.training": {
         "checkpoint": 0,
         "config": 0,
@@ -106,10 +107,12 @@ INTERNAL_RANKS = {
         "validate": 1,
         "run_folder": 2,
         "self_posed_eval": 3,
-        "loop": 4,
-        "paper": 4,
-        "self_posed": 4,
-        "trainer": 5,
+        "task": 3,
+        "run_state": 4,
+        "loop": 5,
+        "paper": 5,
+        "self_posed": 5,
+        "trainer": 6,
     },
     # the pieces of eval-fmr below the module that assembles them
     "byoc_cli.evaluation": {"benchmark": 0, "fmr_protocol": 0, "fmr_summary": 1, "fmr": 2},
