@@ -128,21 +128,34 @@ def _module_name(path: Path) -> str:
 MODULES = {_module_name(p): p for p in SRC.rglob("*.py")}
 
 
+def _absolute(path: Path, node: ast.ImportFrom) -> str | None:
+    """The module a ``from ... import`` names, relative ones (``from . import x``) resolved."""
+    if node.level == 0:
+        return node.module
+    package = _module_name(path).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join([*base, node.module] if node.module else base)
+
+
 def _targets(path: Path, top_level_only: bool = False) -> set[str]:
-    """Modules of ours that ``path`` imports (``from pkg import sub`` counts as ``pkg.sub``)."""
+    """Modules of ours that ``path`` imports (``from pkg import sub`` counts as ``pkg.sub``;
+    relative imports resolved)."""
     tree = ast.parse(path.read_text())
     nodes = tree.body if top_level_only else list(ast.walk(tree))
     found = set()
     for node in nodes:
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names if a.name in MODULES)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            if node.module not in MODULES:
+        elif isinstance(node, ast.ImportFrom):
+            module = _absolute(path, node)
+            if module not in MODULES:
                 continue
-            subs = {f"{node.module}.{a.name}" for a in node.names} & MODULES.keys()
-            found.update(subs or {node.module})
+            subs = {f"{module}.{a.name}" for a in node.names} & MODULES.keys()
+            found.update(subs or {module})
             if len(subs) < len(node.names):
-                found.add(node.module)
+                found.add(module)
     return found
 
 
