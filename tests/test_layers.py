@@ -87,9 +87,10 @@ INTERNAL_RANKS = {
         "pointwise": 2,
         "__init__": 3,
     },
-    # one training loop: its parts below it, the loop and the variants that supply their data
-    # and step (paper, self_posed) on one rank (they never import each other), and the
-    # trainer that picks a variant on top
+    # one training loop: its parts below it (the task protocol a variant meets, then the run
+    # state that checkpoints a task), the loop and the variants that supply their data and
+    # step (paper, self_posed) on one rank (they never import each other), and the trainer
+    # that picks a variant on top
     "byoc_cli.training": {
         "checkpoint": 0,
         "config": 0,
@@ -106,10 +107,12 @@ INTERNAL_RANKS = {
         "validate": 1,
         "run_folder": 2,
         "self_posed_eval": 3,
-        "loop": 4,
-        "paper": 4,
-        "self_posed": 4,
-        "trainer": 5,
+        "task": 3,
+        "run_state": 4,
+        "loop": 5,
+        "paper": 5,
+        "self_posed": 5,
+        "trainer": 6,
     },
     # the pieces of eval-fmr below the module that assembles them
     "byoc_cli.evaluation": {"benchmark": 0, "fmr_protocol": 0, "fmr_summary": 1, "fmr": 2},
@@ -125,21 +128,34 @@ def _module_name(path: Path) -> str:
 MODULES = {_module_name(p): p for p in SRC.rglob("*.py")}
 
 
+def _absolute(path: Path, node: ast.ImportFrom) -> str | None:
+    """The module a ``from ... import`` names, relative ones (``from . import x``) resolved."""
+    if node.level == 0:
+        return node.module
+    package = _module_name(path).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join([*base, node.module] if node.module else base)
+
+
 def _targets(path: Path, top_level_only: bool = False) -> set[str]:
-    """Modules of ours that ``path`` imports (``from pkg import sub`` counts as ``pkg.sub``)."""
+    """Modules of ours that ``path`` imports (``from pkg import sub`` counts as ``pkg.sub``;
+    relative imports resolved)."""
     tree = ast.parse(path.read_text())
     nodes = tree.body if top_level_only else list(ast.walk(tree))
     found = set()
     for node in nodes:
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names if a.name in MODULES)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            if node.module not in MODULES:
+        elif isinstance(node, ast.ImportFrom):
+            module = _absolute(path, node)
+            if module not in MODULES:
                 continue
-            subs = {f"{node.module}.{a.name}" for a in node.names} & MODULES.keys()
-            found.update(subs or {node.module})
+            subs = {f"{module}.{a.name}" for a in node.names} & MODULES.keys()
+            found.update(subs or {module})
             if len(subs) < len(node.names):
-                found.add(node.module)
+                found.add(module)
     return found
 
 

@@ -211,7 +211,7 @@ def test_below_min_confidence_exits_3_and_overwrite_redoes(runner, tmp_path):
 
 
 def test_pairs_below_the_gate_are_named_and_a_rerun_that_skips_them_exits_3(runner, tmp_path):
-    from byoc_cli.cli.batch import NAMED_BELOW_GATE
+    from byoc_cli.cli.batch_summary import NAMED_BELOW_GATE
 
     rng = np.random.default_rng(2)
     write_ply(tmp_path / "a.ply", _cube(rng))

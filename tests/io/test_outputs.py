@@ -8,7 +8,7 @@ import pytest
 
 from byoc_cli.errors import InputError
 from byoc_cli.io import atomic_write_bytes, atomic_write_text
-from byoc_cli.io.outputs import OutputSet, check_run_folder, is_stdout
+from byoc_cli.io.outputs import OutputSet, is_stdout
 
 
 def test_stdout_and_none_pass_through(tmp_path):
@@ -106,20 +106,6 @@ def test_a_failing_commit_restores_the_replaced_files(tmp_path, monkeypatch):
     assert first.read_text() == "old 1" and third.read_text() == "old 3"
     assert not second.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["1.txt", "3.txt"]
-
-
-def test_run_folder_policy(tmp_path):
-    check_run_folder(tmp_path / "new", lambda p: False)
-    (tmp_path / "empty").mkdir()
-    check_run_folder(tmp_path / "empty", lambda p: False)
-    mine = tmp_path / "mine"
-    mine.mkdir()
-    (mine / "weights.safetensors").write_bytes(b"user")
-    with pytest.raises(InputError, match="not empty and not a byoc run folder"):
-        check_run_folder(mine, lambda p: False)
-    check_run_folder(mine, lambda p: True)
-    with pytest.raises(InputError, match="not a folder"):
-        check_run_folder(mine / "weights.safetensors", lambda p: False)
 
 
 @pytest.mark.parametrize(

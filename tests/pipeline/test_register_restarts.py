@@ -9,8 +9,10 @@ import pytest
 import torch
 
 import byoc_cli.pipeline.register as register_module
+import byoc_cli.pipeline.solve as solve_module
 from byoc_cli.pipeline.refine import Refinement
 from byoc_cli.pipeline.restarts import Restarts
+from byoc_cli.pipeline.verdict import NO_RESTARTS
 
 
 def _turn(deg: float) -> torch.Tensor:
@@ -21,11 +23,11 @@ def _turn(deg: float) -> torch.Tensor:
 
 
 def _run(monkeypatch, fitness, ends):
-    """``_restart`` with restarts that end at ``ends`` with ``fitness``; the start the full
+    """``run_restarts`` with restarts that end at ``ends`` with ``fitness``; the start the full
     refinement was rerun from (None: not rerun) and the cues."""
     reruns = []
     monkeypatch.setattr(
-        register_module,
+        solve_module,
         "restart_refinement",
         lambda *a, **k: Restarts(torch.stack(ends), torch.tensor(fitness), 0.025),
     )
@@ -34,9 +36,9 @@ def _run(monkeypatch, fitness, ends):
         reruns.append(T)
         return Refinement(T, 6, 0.9, 0.2, 0.1)
 
-    monkeypatch.setattr(register_module, "refine_multiscale", rerun)
+    monkeypatch.setattr(solve_module, "refine_multiscale", rerun)
     first = Refinement(ends[0], 6, 0.5, 0.3, 0.1)
-    refinement, cues = register_module._restart((None, None), first, 0.025, None)
+    refinement, cues = solve_module.run_restarts((None, None), first, 0.025, None)
     return refinement, (reruns[0] if reruns else None), cues
 
 
@@ -51,7 +53,7 @@ def test_a_better_end_elsewhere_replaces_the_result(monkeypatch):
 
 def test_a_slightly_better_end_elsewhere_only_lowers_the_cues(monkeypatch):
     ends = [_turn(0), _turn(0.2), _turn(10)]
-    gain = register_module.SWITCH_GAIN / 2
+    gain = solve_module.SWITCH_GAIN / 2
     refinement, rerun_from, cues = _run(monkeypatch, [0.5, 0.5, 0.5 + gain], ends)
     assert rerun_from is None and torch.equal(refinement.T_tgt_src, ends[0])
     assert cues["restart_return"] == 0.5 and cues["restart_gain"] == pytest.approx(gain)
@@ -86,7 +88,7 @@ def test_the_cues_without_restarts_are_the_most_confident_of_every_refined_model
         "conditioning": 0.05, "shift_deg": 1.0, "shift_voxels": 1.0,
     }  # fmt: skip
     for kind in MODEL_KINDS:
-        best = probability_right({**base, **register_module.NO_RESTARTS}, MODELS[kind])
+        best = probability_right({**base, **NO_RESTARTS}, MODELS[kind])
         for share in (0.0, 1 / 6, 0.5, 5 / 6, 1.0):
             for gain in (-1.0, -0.2, 0.0, 0.01, 0.3, 1.0):
                 cues = {**base, "restart_return": share, "restart_gain": gain}
@@ -98,8 +100,8 @@ def test_a_result_below_the_floor_skips_the_restarts(monkeypatch, floor, ran):
     from tests.pipeline.test_register_mutual import _pair
 
     calls = []
-    restart = register_module._restart
-    monkeypatch.setattr(register_module, "_restart", lambda *a: calls.append(1) or restart(*a))
+    restart = solve_module.run_restarts
+    monkeypatch.setattr(solve_module, "run_restarts", lambda *a: calls.append(1) or restart(*a))
     src, tgt, _ = _pair(torch.Generator().manual_seed(0))
     config = register_module.RegisterConfig(
         estimator="ransac",
@@ -111,9 +113,7 @@ def test_a_result_below_the_floor_skips_the_restarts(monkeypatch, floor, ran):
     result = register_module.estimate_transform(src, tgt, config, voxel_size=0.2)
     assert bool(calls) == ran and ("restarts" in result.timings) == ran
     if not ran:
-        assert {k: result.cues[k] for k in register_module.NO_RESTARTS} == (
-            register_module.NO_RESTARTS
-        )
+        assert {k: result.cues[k] for k in NO_RESTARTS} == NO_RESTARTS
 
 
 def test_the_restart_floor_is_never_above_the_gate():

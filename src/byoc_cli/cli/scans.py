@@ -59,8 +59,8 @@ def _is_scans_folder(folder: Path) -> bool:
     """A folder this command wrote (its report), or created (its marker: a run killed
     before it wrote the report)."""
     from byoc_cli.errors import InputError
+    from byoc_cli.io.folders import is_marked
     from byoc_cli.io.inputs import read_json_input
-    from byoc_cli.io.outputs import is_marked
 
     if is_marked(folder, MARKER):
         return True
@@ -92,7 +92,7 @@ def _results_folder(out: Path):
     runs, so that a killed run leaves a folder the same command accepts; remove the stale
     temporaries of a killed run. When the block fails, a folder that was new or empty is
     left as it was (marker and folders removed)."""
-    from byoc_cli.io.outputs import mark_folder, new_folders, remove_stale_temporaries
+    from byoc_cli.io.folders import mark_folder, new_folders, remove_stale_temporaries
 
     was_empty = not out.exists() or not any(out.iterdir())
     with new_folders(out):
@@ -242,7 +242,7 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
                 param_hint="'SCANS'",
             )
         stems[path.stem] = path
-    from byoc_cli.io.outputs import check_run_folder
+    from byoc_cli.io.folders import check_run_folder
 
     check_run_folder(out, _is_scans_folder, what="register-scans folder")
     with _results_folder(out):

@@ -31,7 +31,7 @@ from byoc_cli.cli.options import (
     verbose_option,
 )
 from byoc_cli.cli.output import write_stdout
-from byoc_cli.io.outputs import check_run_folder
+from byoc_cli.io.folders import check_run_folder
 from byoc_cli.training.config import VARIANTS
 
 log = logging.getLogger("byoc")

@@ -41,7 +41,7 @@ import numpy as np
 
 from byoc_cli.errors import DatasetError, InputError
 from byoc_cli.io.atomic import atomic_write_text
-from byoc_cli.io.outputs import StagingFolder, remove_stale_staging
+from byoc_cli.io.folders import StagingFolder, remove_stale_staging
 from byoc_cli.io.pointcloud import write_ply
 from byoc_cli.io.rgbd import RGBDSequence
 from byoc_cli.io.threedmatch import EVALUATION_SUFFIX

@@ -1,29 +1,30 @@
 """Pairwise registration: features -> ratio-test correspondences -> robust fit.
 
+The settings (:class:`RegisterConfig`, from a recipe), the matching and the result are here;
+the robust fit, its refinement and restarts are :mod:`byoc_cli.pipeline.solve`, the cues and
+confidence of a result :mod:`byoc_cli.pipeline.verdict`.
+
 The result's transform is ``T_tgt_src`` (4x4, float64, column vectors): it maps source
 points into the target frame, ``x_tgt = R x_src + t``.
 """
 
 from __future__ import annotations
 
-import math
 import time
-import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.fitting import randomized_procrustes, ransac
 from byoc_cli.geometry import apply_transform
-from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
-from byoc_cli.pipeline.confidence import MODEL_KINDS, MODELS, probability_right
+from byoc_cli.pipeline.confidence import MODEL_KINDS
 from byoc_cli.pipeline.features import CloudFeatures, FeatureExtractor
 from byoc_cli.pipeline.recipe import ESTIMATORS, PAPER, RegistrationRecipe
-from byoc_cli.pipeline.refine import Refinement, measure_fit, refine_multiscale
-from byoc_cli.pipeline.restarts import restart_refinement
+from byoc_cli.pipeline.refine import Refinement
+from byoc_cli.pipeline.solve import Solver
+from byoc_cli.pipeline.verdict import Verdict
 from byoc_cli.threads import Parallel
 
 #: refinements after the robust fit
@@ -60,11 +61,12 @@ class RegisterConfig:
             full-resolution clouds, degenerate directions held).
         restarts: after ``"multiscale"`` refinement, refine again from starts turned around the
             result (:func:`byoc_cli.pipeline.restarts.restart_refinement`), keep the end of best
-            fitness when it is elsewhere and better by ``SWITCH_GAIN``, and report how the
-            restarts agree (``restart_return``, ``restart_gain``).
+            fitness when it is elsewhere and better by :data:`~byoc_cli.pipeline.solve.SWITCH_GAIN`,
+            and report how the restarts agree (``restart_return``, ``restart_gain``).
         restart_floor: the restarts run only for a result whose confidence before them (with
-            :data:`NO_RESTARTS`, their most confident cues) reaches this: below it they could
-            only lower it (:func:`restart_floor` of the gate's ``--min-confidence``).
+            :data:`~byoc_cli.pipeline.verdict.NO_RESTARTS`, their most confident cues)
+            reaches this: below it they could only lower it (:func:`restart_floor` of the
+            gate's ``--min-confidence``).
         min_confidence: the gate (``--min-confidence``): an identity-like result of clouds
             sampled along lines gives way to a second try that reaches it
             (:func:`estimate_transform`).
@@ -245,7 +247,7 @@ def estimate_transform(
     timer("match", start)
 
     full = clouds if clouds is not None else (src.points, tgt.points)
-    solver = _Solver(src, tgt, full, voxel_size, refine_voxel or voxel_size, config, parallel)
+    solver = Solver(src, tgt, full, voxel_size, refine_voxel or voxel_size, config, parallel)
     refinement, verdict = solver.solve((p, q, w), (p, q, w), generator, timer)
     if scan_lines and identity_like(refinement.T_tgt_src, solver.still):
         start = time.perf_counter()
@@ -277,63 +279,9 @@ def identity_like(T: torch.Tensor, threshold: float) -> bool:
     return float(torch.linalg.vector_norm(T[:3, 3])) < threshold
 
 
-class _Solver:
-    """The robust fit, refinement and verdict of one pair's correspondences: the kept points
-    of ``src`` and ``tgt``, the ``full`` clouds the refinement runs on, the feature and
-    refinement voxels and the settings of ``config``."""
-
-    def __init__(self, src, tgt, full, voxel_size, refine_voxel, config, parallel):
-        self.src, self.tgt, self.full = src, tgt, full
-        self.voxel_size, self.refine_voxel = voxel_size, refine_voxel
-        self.config, self.parallel = config, parallel
-        self.threshold = config.inlier_factor * voxel_size
-        #: the translation below which a result is identity-like (:func:`identity_like`)
-        self.still = config.inlier_factor * refine_voxel
-
-    def solve(self, fitted, judged, generator, timer) -> tuple[Refinement, _Verdict]:
-        """The refined robust fit of the correspondences ``fitted`` (``p, q (K, 3)``, ``w
-        (K,)``) and its verdict on the correspondences ``judged``.
-
-        Raises:
-            RegistrationError: the fit is degenerate (every minimal set rejected).
-        """
-        config, full = self.config, self.full
-        start = time.perf_counter()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            fit = _fit(*fitted, config, self.threshold, generator)
-        if caught:  # a degenerate fit (every minimal set rejected): no transform to report
-            reason = str(caught[0].message).split(";")[0]  # not the estimator's fallback
-            raise RegistrationError(f"no transform could be fitted ({reason})")
-        T = fit.T_tgt_src.to(torch.float64)
-        start = timer("fit", start)
-        if config.refine == "multiscale":
-            refinement = refine_multiscale(*full, T, self.refine_voxel, parallel=self.parallel)
-            start = timer("refine", start)
-        else:  # the fit cues of the result as it is
-            refinement = measure_fit(*full, T, self.refine_voxel)
-            start = timer("measure", start)
-        judge = _Judge(self.src, self.tgt, judged, T, self.voxel_size, self.threshold, config)
-        verdict = judge(refinement, NO_RESTARTS)
-        start = timer("verify", start)
-        # restarts can only lower the confidence of a result that stays where it is (their
-        # cues at their best are the ones above), so a result that cannot reach the floor
-        # skips them
-        if (
-            config.refine == "multiscale"
-            and config.restarts
-            and verdict.confidence >= config.restart_floor
-        ):
-            refinement, restart_cues = _restart(full, refinement, self.refine_voxel, self.parallel)
-            start = timer("restarts", start)
-            verdict = judge(refinement, restart_cues)
-            timer("verify", start)
-        return refinement, verdict
-
-
 def _second_try(
-    solver: _Solver, correspondences, T: torch.Tensor, generator: torch.Generator
-) -> tuple[Refinement, _Verdict] | None:
+    solver: Solver, correspondences, T: torch.Tensor, generator: torch.Generator
+) -> tuple[Refinement, Verdict] | None:
     """The fit of the correspondences ``(p, q, w)`` that the identity-like ``T (4, 4)`` does
     not explain (residual at or above the feature inlier threshold), judged on all of them;
     None when fewer than 3 are left, the fit fails, its result leaves the origin within the
@@ -355,122 +303,6 @@ def _second_try(
     ):
         return None
     return refinement, verdict
-
-
-#: the restart cues of a result without restarts: no doubt (their most confident values)
-NO_RESTARTS = {"restart_return": 1.0, "restart_gain": -1.0}
-
-
-class _Verdict(NamedTuple):
-    cues: dict[str, float]
-    confidence: float
-    num_inliers: int
-    overlap: float
-
-
-class _Judge:
-    """The cues and the confidence of a refinement of one pair's robust fit: the
-    correspondences ``(p, q, w)`` (``(K, 3)``, ``(K, 3)``, ``(K,)``) it came from, the
-    fit ``T_coarse (4, 4)`` and the kept points of ``src`` and ``tgt``."""
-
-    def __init__(self, src, tgt, correspondences, T_coarse, voxel_size, threshold, config):
-        self.src, self.tgt = src, tgt
-        self.p, self.q, self.w = correspondences
-        self.T_coarse, self.voxel_size, self.threshold = T_coarse, voxel_size, threshold
-        # a result that the multiscale ICP did not refine has its own calibration
-        kind = config.confidence_model
-        self.model = MODELS[kind if config.refine == "multiscale" else f"{kind}-unrefined"]
-        self.coarse = float(
-            (
-                torch.linalg.vector_norm(apply_transform(T_coarse, self.p) - self.q, dim=1)
-                < threshold
-            )
-            .double()
-            .mean()
-        )
-
-    def __call__(self, refinement: Refinement, restart_cues: dict[str, float]) -> _Verdict:
-        T, p, q, w = refinement.T_tgt_src, self.p, self.q, self.w
-        residual = torch.linalg.vector_norm(apply_transform(T, p) - q, dim=1)
-        inlier = residual < self.threshold
-        num_inliers = int(inlier.sum())
-        share = float(w[inlier].sum() / w.sum().clamp_min(1e-12)) if num_inliers >= 3 else 0.0
-        moved = apply_transform(T, self.src.points)
-        overlap = float(near_occupied(moved, self.tgt.points, self.voxel_size).float().mean())
-        shift = T @ torch.linalg.inv(self.T_coarse)
-        cues = {
-            **restart_cues,
-            "inlier_share": share,
-            "inlier_ratio": num_inliers / p.shape[0],
-            "inliers": float(num_inliers),
-            "overlap": overlap,
-            "coarse_inlier_ratio": self.coarse,
-            "fitness": refinement.fitness,
-            "rmse": refinement.rmse,
-            "rank": float(refinement.rank),
-            "conditioning": refinement.conditioning,
-            "shift_deg": _angle_deg(shift[:3, :3]),
-            "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / self.voxel_size,
-        }
-        confidence = probability_right(cues, self.model) if num_inliers >= 3 else 0.0
-        return _Verdict(cues, confidence, num_inliers, overlap)
-
-
-#: a restart's end replaces the refined result when its fitness is higher by this
-SWITCH_GAIN = 0.01
-
-
-def _restart(clouds, refinement: Refinement, voxel_size: float, parallel):
-    """The refinement to report and the restart cues: :func:`restart_refinement` around
-    ``refinement``'s result; where the best end lies elsewhere and its fitness is higher by
-    ``SWITCH_GAIN``, the full refinement from there replaces it."""
-    restarts = restart_refinement(*clouds, refinement.T_tgt_src, voxel_size, parallel=parallel)
-    pick = restarts.best()
-    if (
-        bool(restarts.same_place(0)[pick])
-        or restarts.fitness[pick] - restarts.fitness[0] <= SWITCH_GAIN
-    ):
-        pick = 0
-    else:
-        refinement = refine_multiscale(*clouds, restarts.ends[pick], voxel_size, parallel=parallel)
-    return refinement, {
-        "restart_return": restarts.returned(pick),
-        "restart_gain": restarts.gain(pick),
-    }
-
-
-def _angle_deg(R: torch.Tensor) -> float:
-    """Rotation angle of ``R (3, 3)`` in degrees."""
-    cos = (float(torch.trace(R)) - 1.0) / 2.0
-    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-
-
-def _fit(
-    p: torch.Tensor,
-    q: torch.Tensor,
-    w: torch.Tensor,
-    config: RegisterConfig,
-    threshold: float,
-    generator: torch.Generator,
-):
-    """The robust estimator of ``config`` on correspondences ``p, q (K, 3)``, ``w (K,)``."""
-    if config.estimator == "procrustes":
-        return randomized_procrustes(
-            p,
-            q,
-            w,
-            num_subsets=config.num_subsets,
-            subset_size=config.subset_size,
-            generator=generator,
-        )
-    return ransac(
-        p,
-        q,
-        inlier_threshold=threshold,
-        max_iterations=config.ransac_iterations,
-        confidence=config.ransac_confidence,
-        generator=generator,
-    )
 
 
 def register_clouds(

@@ -1,15 +1,15 @@
 """The one training loop: run folder, optimiser, steps, records, validation, checkpoints, export.
 
-Every variant runs here. A variant is a :class:`TrainTask`: it supplies its model, its data
-(:meth:`~TrainTask.prepare`, :meth:`~TrainTask.next_batch`), its step (the loss of a batch)
-and its measurements (validation, export); the loop owns the rest, the same for all:
+Every variant runs here. A variant is a :class:`~byoc_cli.training.task.TrainTask`: it
+supplies its model, its data, its step (the loss of a batch) and its measurements
+(validation, export); the loop owns the rest, the same for all:
 
 * the run folder (``config.json``, ``metrics.jsonl`` records, ``training.png``;
   :mod:`.run_folder`, :mod:`.plot`);
 * the optimiser (Adam, :func:`build_optimizer`) and the divergence guard (:mod:`.guard`);
 * when to log, validate and checkpoint;
 * checkpoints and exact resume: the model, the optimiser, every RNG state (the task's
-  ``generators`` too) and the task's data position are saved and restored (:mod:`.checkpoint`),
+  ``generators`` too) and the task's data position are saved and restored (:mod:`.run_state`),
   so a killed run that is resumed ends with bit-identical weights (on the same device and
   thread count);
 * processes under ``torchrun`` (DDP): every process steps on its share of each batch; only
@@ -18,39 +18,31 @@ and its measurements (validation, export); the loop owns the rest, the same for 
 
 from __future__ import annotations
 
-import json
-import logging
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
 import torch
 
 from byoc_cli.errors import InputError
-from byoc_cli.training.checkpoint import (
-    capture_rng_state,
-    load_latest_checkpoint,
-    restore_rng_state,
-    save_checkpoint,
-)
 from byoc_cli.training.config import TrainConfig
-from byoc_cli.training.distributed import DistInfo, barrier, gather_objects, mean_across
+from byoc_cli.training.distributed import DistInfo, barrier, mean_across
 from byoc_cli.training.guard import check_finite, step_guard
-from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics, read_metrics
+from byoc_cli.training.plot import METRICS_FILE, PLOT_FILE, plot_metrics
 from byoc_cli.training.run_folder import (
     CONFIG_FILE,
     WEIGHTS_FILE,
     NewRunFolder,
+    RunRecords,
     has_progress,
     start_run_folder,
     truncate_metrics,
     write_run_config,
 )
-
-log = logging.getLogger("byoc.train")
+from byoc_cli.training.run_state import restore_run_state, save_run_state
+from byoc_cli.training.task import TrainTask
 
 #: the steps the progress display's throughput is measured over
 RATE_WINDOW = 20
@@ -121,85 +113,6 @@ class TrainResult:
     loss_lines: int = 0
     validation: dict[str, float] = field(default_factory=dict)
     initial_validation: dict[str, float] = field(default_factory=dict)
-
-
-class RunRecords:
-    """``metrics.jsonl`` of a run: one JSON object a line (keys sorted), appended.
-
-    Records have a ``kind``: ``train`` (a log window's means), ``val`` (a validation) or a
-    variant's own (``round`` of ``self-posed``), and the ``step`` they were written at.
-    """
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-
-    def write(self, record: dict[str, Any]) -> None:
-        """Append one record (flushed)."""
-        with open(self.path, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(record, sort_keys=True) + "\n")
-            fh.flush()
-
-    def read(self) -> list[dict[str, Any]]:
-        """Every record so far (none when the file does not exist yet)."""
-        return read_metrics(self.path)
-
-
-class TrainTask(Protocol):
-    """What a variant supplies to the loop: its model, data, step and measurements.
-
-    Attributes:
-        model: the module whose trainable parameters are optimised and whose state is
-            checkpointed (on the training device).
-        generators: the variant's named ``torch.Generator`` s (saved with the checkpoints).
-        data_names: the training sequences' names (``config.json``, weights metadata).
-        fused_optimizer: build Adam fused (one kernel for all tensors).
-        validates: whether :meth:`validate` measures anything (on this process).
-    """
-
-    model: torch.nn.Module
-    generators: dict[str, torch.Generator]
-    data_names: list[str]
-    fused_optimizer: bool
-    validates: bool
-
-    def load_initial_weights(self) -> None:
-        """A new run's starting weights (``init_weights``); called at step 0 only."""
-
-    def data_position(self) -> dict[str, int]:
-        """Where the data order stands (``epoch``, ``batch_in_epoch``), for a checkpoint."""
-
-    def restore_position(self, state: dict[str, Any]) -> None:
-        """Continue the data order from a checkpoint's :meth:`data_position`."""
-
-    def prepare(
-        self,
-        step: int,
-        records: RunRecords,
-        progress: Callable[[str, int, int], None] | None = None,
-    ) -> None:
-        """Make the data of the step after ``step`` completed steps ready (called before the
-        first step, then before every step); may write the variant's own records.
-        ``progress(stage, done, total)`` hears of long work (:class:`TrainCallbacks`)."""
-
-    def next_batch(self) -> Any:
-        """The next training batch."""
-
-    def step(self, module: torch.nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
-        """The loss of ``batch`` through ``module`` (:attr:`model`, or its DDP wrapper) and
-        the step's values to log (``loss`` and the variant's own)."""
-
-    def summarize(self, window: list[dict[str, float]], seconds: float) -> dict[str, float]:
-        """A ``train`` record's variant fields: the means of a log window's step values (and
-        the variant's rates over its ``seconds``)."""
-
-    def validate(self) -> dict[str, float] | None:
-        """The validation metrics of the model as it stands (None: no validation)."""
-
-    def checkpoint_due(self, step: int) -> bool:
-        """A checkpoint the variant needs after ``step`` besides ``checkpoint_every``."""
-
-    def export(self, path: Path, steps: int, metrics: dict[str, float]) -> str:
-        """Write the trained encoder as a weights file; returns its SHA-256."""
 
 
 def build_optimizer(
@@ -299,7 +212,9 @@ class _Run:
         barrier(info)
         self.task = make_task(config, info)
         self.optimizer = build_optimizer(self.task.model, config, fused=self.task.fused_optimizer)
-        self.step = self._restore() if resume else 0
+        self.step = (
+            restore_run_state(self.run_dir, self.task, self.optimizer, self.info) if resume else 0
+        )
         if self.step == 0:
             self.task.load_initial_weights()
         if info.is_main:
@@ -321,41 +236,12 @@ class _Run:
         self.result = TrainResult(self.run_dir, None, None, self.step)
 
     # ------------------------------------------------------------------ checkpoints
-    def _restore(self) -> int:
-        """The step of the newest checkpoint, its state restored (0 without one)."""
-        found = load_latest_checkpoint(self.run_dir)
-        if found is None:
-            return 0
-        state, path = found
-        self.task.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.task.restore_position(state)
-        rng = state["rng"]
-        if len(rng) == self.info.world_size:
-            restore_rng_state(rng[self.info.rank], self.task.generators)
-        else:
-            warnings.warn(
-                f"{path} was written by {len(rng)} process(es), this run has "
-                f"{self.info.world_size}: RNG streams are re-seeded",
-                stacklevel=3,
-            )
-        log.info("resuming %s at step %d", self.run_dir, int(state["step"]))
-        return int(state["step"])
-
     def _checkpoint(self) -> None:
-        rng_all = gather_objects(self.info, capture_rng_state(self.task.generators))
-        if not self.info.is_main:
-            return
-        state = {
-            "model": self.task.model.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            **self.task.data_position(),
-            "rng": rng_all,
-            "config": self.config.to_dict(),
-            "world_size": self.info.world_size,
-        }
-        path = save_checkpoint(self.run_dir, self.step, state, keep=self.config.keep_checkpoints)
-        self.callbacks.call("on_checkpoint", self.step, path)
+        path = save_run_state(
+            self.run_dir, self.step, self.task, self.optimizer, self.config, self.info
+        )
+        if path is not None:
+            self.callbacks.call("on_checkpoint", self.step, path)
 
     # ------------------------------------------------------------------ records
     def _validate(self) -> dict[str, float]:

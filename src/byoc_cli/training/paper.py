@@ -74,7 +74,7 @@ def loss_values(terms: LossTerms) -> dict[str, float]:
 
 
 class PaperTask:
-    """A paper variant's model, data, step and validation (a :class:`.loop.TrainTask`).
+    """A paper variant's model, data, step and validation (a :class:`.task.TrainTask`).
 
     Raises:
         DatasetError: unusable data folders.

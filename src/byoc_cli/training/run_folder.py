@@ -135,6 +135,27 @@ def truncate_metrics(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in keep))
 
 
+class RunRecords:
+    """``metrics.jsonl`` of a run: one JSON object a line (keys sorted), appended.
+
+    Records have a ``kind``: ``train`` (a log window's means), ``val`` (a validation) or a
+    variant's own (``round`` of ``self-posed``), and the ``step`` they were written at.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def write(self, record: dict[str, Any]) -> None:
+        """Append one record (flushed)."""
+        with open(self.path, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(record, sort_keys=True) + "\n")
+            fh.flush()
+
+    def read(self) -> list[dict[str, Any]]:
+        """Every record so far (none when the file does not exist yet)."""
+        return read_metrics(self.path)
+
+
 def resume_config(run_dir: str | Path, overrides: dict[str, Any]) -> TrainConfig:
     """The saved configuration of a run with the allowed ``overrides`` applied.
 

@@ -274,7 +274,7 @@ def training_step(
 
 class SelfPosedTask:
     """The ``self-posed`` variant's encoder, pairs, step and validation (a
-    :class:`~byoc_cli.training.loop.TrainTask`).
+    :class:`~byoc_cli.training.task.TrainTask`).
 
     One process on the CPU. Before the first step of each round the round's pairs are loaded
     (estimated on first use, :func:`load_or_estimate_pairs`) and logged as a ``round`` record;

@@ -1,0 +1,179 @@
+"""The pairs of ``register-batch`` run side by side: one registrar, one cache of clouds and
+features shared by its worker threads, each pair's T file written in list order.
+
+:class:`PairRunner` never raises for a bad pair: its summary record
+(:func:`byoc_cli.cli.batch_summary.pair_record`) says why, and the other pairs go on.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Iterator
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+from byoc_cli.cli.batch_summary import FAILED, LOW_CONFIDENCE, OK, pair_record
+from byoc_cli.cli.pairwise import registration_report
+
+log = logging.getLogger("byoc")
+
+
+class FeatureCache:
+    """The features of the last ``size`` clouds used (least recently used goes first).
+
+    Shared by the worker threads: a cloud asked for while another thread computes it is
+    waited for, not computed twice; a failed computation is not kept (each pair that asks
+    again gets the error again).
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[Any, Future] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any, compute) -> tuple[Any, bool]:
+        """``(features, was_cached)``; ``compute()`` makes them on a miss."""
+        with self._lock:
+            future = self._items.get(key)
+            if future is not None:
+                self._items.move_to_end(key)
+            else:
+                self._items[key] = mine = Future()
+                if len(self._items) > self.size:
+                    self._items.popitem(last=False)
+        if future is not None:
+            return future.result(), True
+        try:
+            value = compute()
+        except BaseException as exc:
+            mine.set_exception(exc)
+            with self._lock:
+                if self._items.get(key) is mine:
+                    del self._items[key]
+            raise
+        mine.set_result(value)
+        return value, False
+
+
+class PairRunner:
+    """Registers pairs with the shared registrar and feature cache, on the registrar's worker
+    threads (:meth:`in_order`), and writes each pair's T file (:meth:`finish`, in the
+    calling thread, in list order); never raises for a bad pair (its record says why)."""
+
+    #: pairs submitted ahead of the one being written, per worker thread
+    AHEAD = 2
+
+    def __init__(self, registrar, cache, load: dict, gate: dict, inputs) -> None:
+        self.registrar, self.cache, self.load, self.inputs = registrar, cache, load, inputs
+        self.min_confidence, self.device = gate["min_confidence"], gate["device"]
+
+    def in_order(self, todo) -> Iterator[tuple[Any, float]]:
+        """:meth:`compute` of every ``(entry, output)`` of ``todo``, run side by side on the
+        registrar's workers (at most ``AHEAD`` per worker in flight, so a killed run loses
+        only those), yielded in list order."""
+        pool = self.registrar.executor()
+        window = self.AHEAD * self.registrar.threads
+        pending: deque[Future] = deque()
+        try:
+            for entry, _ in todo:
+                pending.append(pool.submit(self.compute, entry))
+                if len(pending) >= window:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:  # interrupted: the pairs not started yet are dropped
+            for future in pending:
+                future.cancel()
+
+    def compute(self, entry) -> tuple[Any, float]:
+        """``(registration or the exception, seconds)`` of one pair."""
+        started = time.perf_counter()
+        timings: dict[str, float] = {}
+        try:
+            (factor_src, factor_tgt), _ = self.load["factors"]
+            cloud_src = self._cloud(entry.source, "source", factor_src, timings)
+            cloud_tgt = self._cloud(entry.target, "target", factor_tgt, timings)
+            choice, voxels = None, [(None, None, 1.0)] * 2
+            if self.registrar.auto_voxel:
+                choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
+                voxels = [
+                    (choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)
+                ]
+            src = self._features(cloud_src, voxels[0], timings, "features_src")
+            tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
+            result = self.registrar.match(src, tgt)
+            result = result._replace(
+                timings={**timings, **result.timings},
+                voxel_choice=None if choice is None else choice.as_dict(),
+            )
+        except Exception as exc:  # one bad pair must not stop the others
+            result = exc
+        return result, time.perf_counter() - started
+
+    def _cloud(self, path: Path, label: str, factor: float | None, timings: dict):
+        """``(points, name, CloudScale | None, key)`` of a file times its ``factor`` to metres,
+        read (and measured for an auto voxel) once while it stays in the cache."""
+        start = time.perf_counter()
+        key = ("cloud", path.resolve(), factor)
+
+        def read():
+            load = {k: self.load[k] for k in ("intrinsics", "depth_scale")}
+            points, name = self.registrar.load(path, label, factor, **load)
+            auto = self.registrar.auto_voxel
+            size = self.registrar.cloud_scale(points, name) if auto else None
+            return points, name, size, key
+
+        cloud, cached = self.cache.get(key, read)
+        timings["load"] = timings.get("load", 0.0) + (
+            0.0 if cached else time.perf_counter() - start
+        )
+        return cloud
+
+    def _features(self, cloud, voxel: tuple, timings: dict, stage: str):
+        """Features at ``voxel``, ``(voxel_size, refine_voxel, keep)`` (None, None, 1.0:
+        the registrar's); their ``scale`` is the target's factor (T in the target's units)."""
+        start = time.perf_counter()
+        points, name, _, key = cloud
+        units = self.load["factors"][0][1]
+        feats, cached = self.cache.get(
+            ("features", key, voxel),
+            lambda: self.registrar.extract_points(points, units, name, *voxel),
+        )
+        timings[stage] = 0.0 if cached else time.perf_counter() - start
+        return feats
+
+    def finish(self, entry, output: Path, computed: tuple[Any, float]) -> dict:
+        """Write the T file of a :meth:`compute` result; the pair's summary record."""
+        from byoc_cli.io import atomic_write_text, format_transform
+        from byoc_cli.io.outputs import OutputSet
+
+        result, seconds = computed
+        try:
+            if isinstance(result, Exception):
+                raise result
+            policy = OutputSet(self.inputs)
+            policy.claim(output)
+            with policy:  # the T file appears complete, or not at all
+                atomic_write_text(output, format_transform(result.T_tgt_src))
+        except Exception as exc:  # one bad pair must not stop the others
+            log.debug("pair on line %d failed", entry.line, exc_info=True)
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            return pair_record(entry, output, FAILED, message)
+        factors, factors_given = self.load["factors"]
+        run = {
+            "min_confidence": self.min_confidence,
+            "scale": self.load["scale"],
+            "factors": factors,
+            "factors_given": factors_given,
+            "depth_scale": self.load["depth_scale"],
+            "device": self.device,
+            "started": time.perf_counter(),
+        }
+        report = registration_report(result, self.registrar, (entry.source, entry.target), run)
+        del report["timings_s"]["command"]
+        report["timings_s"]["pair"] = seconds
+        return {**pair_record(entry, output, OK if result.passed else LOW_CONFIDENCE), **report}
