@@ -1,7 +1,7 @@
 """Issue 34's bars on size: no module under ``src/`` or ``benchmarks/`` over 450 lines, no class
 in ``src/`` over 200 lines (from its ``class`` line to its last line: the AST node's
-``end_lineno - lineno + 1``). A module that outgrows them is split along its ideas (one per
-format, stage or concern), not cut in half."""
+``end_lineno - lineno + 1``), ``api.py`` under 250 lines. A module that outgrows them is
+split along its ideas (one per format, stage or concern), not cut in half."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ MAX_MODULE_LINES = 450
 MAX_CLASS_LINES = 200
 
 # paths relative to the repository, allowed over the bars for now (modules and their classes)
-KNOWN_EXCEPTIONS = {
-    "src/byoc_cli/api.py",  # issue 34: api.py is being split
-}
+KNOWN_EXCEPTIONS: set[str] = set()
+#: the Python API is a facade over the engine of ``pipeline/``, not a second home for it
+MAX_API_LINES = 250
 
 
 def _modules(*folders: Path) -> dict[str, Path]:
@@ -68,3 +68,8 @@ def test_the_known_exceptions_still_exist_and_still_need_to_be():
         or (_lines(modules[name]) <= MAX_MODULE_LINES and not _long_classes(modules[name]))
     )
     assert not stale, f"remove from KNOWN_EXCEPTIONS (within the bars now): {stale}"
+
+
+def test_the_api_is_a_thin_facade():
+    lines = _lines(SRC / "byoc_cli" / "api.py")
+    assert lines < MAX_API_LINES, f"api.py has {lines} lines: the engine belongs in pipeline/"
