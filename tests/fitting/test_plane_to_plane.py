@@ -1,0 +1,110 @@
+"""The plane-to-plane (generalized ICP) step: recovery, its reference cost, weights,
+degenerate input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from byoc_cli.errors import ShapeError
+from byoc_cli.fitting.plane_to_plane import disc_covariances, plane_to_plane_step
+from byoc_cli.geometry.transforms import apply_transform, axis_angle_to_matrix, make_transform
+
+
+def _box_surface(n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(n, 3)`` points on the six faces of a 1 x 0.6 x 0.4 box and their normals."""
+    half = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64)
+    face = torch.randint(0, 6, (n,), generator=generator)
+    axis, sign = face // 2, (face % 2) * 2 - 1
+    p = (torch.rand(n, 3, generator=generator, dtype=torch.float64) * 2 - 1) * half
+    p[torch.arange(n), axis] = sign.double() * half[axis]
+    normal = torch.zeros(n, 3, dtype=torch.float64)
+    normal[torch.arange(n), axis] = sign.double()
+    return p, normal
+
+
+def _motion(angle_deg: float, t: list[float]) -> torch.Tensor:
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    R = axis_angle_to_matrix(axis / axis.norm() * math.radians(angle_deg))
+    return make_transform(R, torch.tensor(t, dtype=torch.float64))
+
+
+def _iterate(p, n_p, q, n_q, steps=10, weights=None):
+    T = torch.eye(4, dtype=torch.float64)
+    for _ in range(steps):
+        R = T[:3, :3]
+        step = plane_to_plane_step(apply_transform(T, p), n_p @ R.T, q, n_q, weights)
+        T = step.T @ T
+    return T, step
+
+
+def _cost(T, p, n_p, q, n_q, flatness=1e-3):
+    """The generalized-ICP cost at ``T``, written out naively (the reference)."""
+    R = T[:3, :3]
+    total = torch.zeros((), dtype=torch.float64)
+    for i in range(len(p)):
+        C = R @ disc_covariances(n_p[i : i + 1], flatness)[0] @ R.T
+        C = C + disc_covariances(n_q[i : i + 1], flatness)[0]
+        d = q[i] - (R @ p[i] + T[:3, 3])
+        total = total + d @ torch.linalg.solve(C, d)
+    return float(total)
+
+
+def test_recovers_a_known_motion_on_a_box(generator):
+    q, n = _box_surface(3000, generator)
+    T_true = _motion(4.0, [0.03, -0.02, 0.01])  # maps p onto q
+    p = apply_transform(torch.linalg.inv(T_true), q)
+    n_p = n @ T_true[:3, :3]  # the source's normals, in the source frame
+    T, step = _iterate(p, n_p, q, n)
+    assert torch.allclose(T, T_true, atol=1e-8)
+    assert step.rank == 6 and step.eigenvalues[-1] == 1.0
+
+
+def test_a_step_lowers_the_naive_cost_and_the_normals_sign_does_not_matter(generator):
+    q, n = _box_surface(60, generator)
+    T_true = _motion(6.0, [0.05, 0.02, -0.04])
+    p = apply_transform(torch.linalg.inv(T_true), q)
+    n_p = n @ T_true[:3, :3]
+    eye = torch.eye(4, dtype=torch.float64)
+    step = plane_to_plane_step(p, n_p, q, n)
+    assert _cost(step.T, p, n_p, q, n) < 0.05 * _cost(eye, p, n_p, q, n)
+    flipped = plane_to_plane_step(p, -n_p, q, -n)
+    assert torch.allclose(flipped.T, step.T, atol=1e-12)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.1, 10.0))
+def test_weights_scale_and_order_do_not_change_the_step(seed, scale):
+    g = torch.Generator().manual_seed(seed)
+    q, n = _box_surface(200, g)
+    T_true = _motion(3.0, [0.02, 0.0, 0.01])
+    p = apply_transform(torch.linalg.inv(T_true), q)
+    w = torch.rand(200, generator=g, dtype=torch.float64)
+    base = plane_to_plane_step(p, n, q, n, w)
+    scaled = plane_to_plane_step(p, n, q, n, w * scale)
+    order = torch.randperm(200, generator=g)
+    shuffled = plane_to_plane_step(p[order], n[order], q[order], n[order], w[order])
+    assert torch.allclose(base.T, scaled.T, atol=1e-9)
+    assert torch.allclose(base.T, shuffled.T, atol=1e-9)
+
+
+@pytest.mark.parametrize("count", [0, 1, 2])
+def test_too_few_points_give_the_identity_with_rank_0(count):
+    p = torch.zeros(count, 3, dtype=torch.float64)
+    n = torch.zeros(count, 3, dtype=torch.float64)
+    n[:, 2] = 1.0
+    step = plane_to_plane_step(p, n, p + 0.1, n)
+    assert step.rank == 0 and torch.equal(step.T, torch.eye(4, dtype=torch.float64))
+    zero = plane_to_plane_step(*(torch.ones(5, 3, dtype=torch.float64),) * 4, torch.zeros(5))
+    assert zero.rank == 0
+
+
+def test_shapes_must_agree():
+    with pytest.raises(ShapeError, match=r"\(K, 3\)"):
+        plane_to_plane_step(
+            torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(5, 3), torch.zeros(4, 3)
+        )
