@@ -374,7 +374,7 @@ def test_the_documented_keywords_and_fields_are_the_codes():
     def names(text: str) -> list[str]:
         return re.findall(r"`([A-Za-z_][A-Za-z_0-9]*)`", text)
 
-    register_keys = {*api._REGISTRAR_KEYS, *api._LOAD_KEYS, *api._MATCH_KEYS}
+    register_keys = {*api._REGISTRAR_KEYS, *api._LOAD_KEYS, *api._MATCH_KEYS, *api._INIT_KEYS}
     assert set(names(_bullet("* `register`'s `overrides`:"))) - {"Registrar"} == register_keys
     extract = set(names(_bullet("* `extract_features`' `overrides`:")))
     assert extract == {*api._REGISTRAR_KEYS, *api._LOAD_KEYS} - {"fallback"}

@@ -77,6 +77,8 @@ def extract_features(
 _REGISTRAR_KEYS = ("features", "weights", "voxel_size", "fallback")
 _LOAD_KEYS = ("scale", "intrinsics", "depth_scale")
 _MATCH_KEYS = ("estimator", "refine", "max_points", "num_correspondences", "seed")
+#: :func:`register`'s keywords of a registration from an initial pose
+_INIT_KEYS = ("init", "max_correction", "init_mode")
 
 
 def register(
@@ -99,7 +101,10 @@ def register(
             ``estimator``, ``refine``, ``max_points``, ``num_correspondences``, ``seed`` (see
             :meth:`Registrar.match`); ``scale`` (multiply the inputs by this, 0.001 for
             millimetres; T is in the input units), ``intrinsics``, ``depth_scale`` (for
-            depth-image files).
+            depth-image files); ``init`` (a ``(4, 4)`` guess of ``T_tgt_src`` in the input
+            units: the local registration from it), ``max_correction`` (``(degrees,
+            distance)``: its trust region) and ``init_mode`` (``"local"``, or ``"global"``: the
+            global registration checked against the guess; see :meth:`Registrar.register`).
 
     Returns:
         :class:`Registration`.
@@ -107,8 +112,10 @@ def register(
     Raises:
         InputError, ShapeError, WeightsError, RegistrationError: see :class:`Registrar`.
         TypeError: an unknown keyword.
+        ValueError: ``init`` is not a rigid 4x4 transform, a bad ``max_correction`` or
+            ``init_mode``.
     """
-    unknown = set(overrides) - {*_REGISTRAR_KEYS, *_LOAD_KEYS, *_MATCH_KEYS}
+    unknown = set(overrides) - {*_REGISTRAR_KEYS, *_LOAD_KEYS, *_MATCH_KEYS, *_INIT_KEYS}
     if unknown:
         raise TypeError(f"register() got unexpected keyword(s) {sorted(unknown)}")
     made = {k: overrides[k] for k in _REGISTRAR_KEYS if k in overrides}
@@ -117,5 +124,5 @@ def register(
         source,
         target,
         **{k: overrides[k] for k in _LOAD_KEYS if k in overrides},
-        **{k: overrides[k] for k in _MATCH_KEYS if k in overrides},
+        **{k: overrides[k] for k in (*_MATCH_KEYS, *_INIT_KEYS) if k in overrides},
     )

@@ -244,8 +244,8 @@ def test_pairs_below_the_gate_are_named_and_a_rerun_that_skips_them_exits_3(runn
 @pytest.mark.parametrize(
     ("content", "extra", "message"),
     [
-        ("a.ply\n", [], "line 1: expected 'source target [output]', got 1 column"),
-        ("a.ply b.ply c.txt d\n", [], "got 4 column"),
+        ("a.ply\n", [], "line 1: expected 'source target [output [init]]'"),
+        ("a.ply b.ply c.txt d e\n", [], "got 5 column"),
         ("# nothing\n\n", [], "holds no pair"),
         ("a.ply b.ply t.txt\nb.ply a.ply t.txt\n", [], "of line 1 and of line 2"),
         ("a.ply b.ply a.ply\n", [], "is an input of this run"),
@@ -280,3 +280,59 @@ def test_missing_list_and_bad_shard(runner, tmp_path):
         res = runner.invoke(cli, ["register-batch", str(tmp_path / "p.txt"), "--shard", bad])
         assert res.exit_code == 2 and "--shard" in res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.txt"]
+
+
+# ------------------------------------------------------------------ the init column (issue 36)
+
+
+def test_an_init_column_registers_its_pairs_from_the_pose(runner, tmp_path):
+    from byoc_cli.io import format_transform
+
+    rng = np.random.default_rng(4)
+    box = rng.uniform(-1, 1, (20_000, 3))
+    face = rng.integers(0, 3, len(box))
+    box[np.arange(len(box)), face] = np.sign(box[np.arange(len(box)), face])
+    room = box * np.array([1.5, 1.2, 1.0])
+    T_gt = np.eye(4)
+    T_gt[:3, 3] = [0.3, -0.2, 0.1]
+    write_ply(tmp_path / "a.ply", room - T_gt[:3, 3])
+    write_ply(tmp_path / "b.ply", room)
+    guess = T_gt.copy()
+    guess[:3, 3] += [0.1, 0.1, -0.05]
+    (tmp_path / "guess.txt").write_text(format_transform(guess))
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(
+        "a.ply b.ply T_local.txt guess.txt\n"
+        "a.ply b.ply T_missing.txt absent.txt\n"
+        "a.ply b.ply T_global.txt\n"
+    )
+    res = runner.invoke(cli, ["register-batch", str(listing), *COARSE])
+    summary = _summary(tmp_path / "summary.jsonl")
+    assert [s["status"] for s in summary][:2] == ["ok", "failed"], res.output
+    assert res.exit_code == 1  # the missing init file fails its pair, the others go on
+    assert summary[0]["path"] == "local" and summary[0]["init"]["file"].endswith("guess.txt")
+    assert summary[0]["init"]["correction"]["translation"] == pytest.approx(0.15, abs=0.01)
+    assert np.allclose(np.loadtxt(tmp_path / "T_local.txt"), T_gt, atol=0.01)
+    assert "absent.txt" in summary[1]["error"] and "absent.txt" in res.stderr
+    assert summary[2]["path"] == "global" and summary[2]["init"] is None
+    # a tight trust region: exit 3, the line says why
+    listing.write_text("a.ply b.ply T_local.txt guess.txt\n")
+    args = ["register-batch", str(listing), "--overwrite", "--max-correction", "10,0.05"]
+    res = runner.invoke(cli, [*args, "--summary", str(tmp_path / "tight.jsonl")])
+    assert res.exit_code == 3
+    assert "from its init, beyond --max-correction 10.0 deg / 0.05" in res.stderr
+    # a rerun that skips it still exits 3 (it never passes, whatever the gate)
+    args = ["register-batch", str(listing), "--summary", str(tmp_path / "tight.jsonl")]
+    assert runner.invoke(cli, [*args, "--min-confidence", "0"]).exit_code == 3
+
+
+def test_an_init_column_that_is_an_output_or_an_extra_column_is_refused(runner, tmp_path):
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("a.ply b.ply T.txt init.txt more\n")
+    res = runner.invoke(cli, ["register-batch", str(listing)])
+    assert res.exit_code == 1 and "'source target [output [init]]'" in res.stderr
+    assert "an init column comes after the output column" in res.stderr
+    (tmp_path / "init.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    listing.write_text("a.ply b.ply T.txt init.txt\nc.ply d.ply init.txt\n")
+    res = runner.invoke(cli, ["register-batch", str(listing)])
+    assert res.exit_code == 1 and "init.txt" in res.stderr  # an output over an input

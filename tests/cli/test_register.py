@@ -526,3 +526,126 @@ def test_tum_depth_images_read_the_depth_scale_of_their_layout(runner, shared_da
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and "--depth-scale" in lines[0] and "median depth" in lines[0]
         assert not (tmp_path / "w.txt").exists()
+
+
+# ------------------------------------------------------------------ --init (issue 36)
+
+
+def _room_files(tmp_path: Path) -> tuple[Path, Path, np.ndarray, np.ndarray]:
+    """A room of three boxes sampled twice, the source moved: ``(source, target, T_gt,
+    guess)``, the guess 8 deg (about the source's centroid) and 20 cm off."""
+    rng = np.random.default_rng(2)
+    boxes = [([-1.5, -1.2, 0.0], [1.5, 1.2, 2.0]), ([-0.4, -0.3, 0.0], [0.3, 0.2, 0.7])]
+    boxes.append(([0.6, 0.4, 0.0], [1.2, 1.0, 1.1]))
+
+    def sample(n: int) -> np.ndarray:
+        out = []
+        for lo, hi in boxes:
+            lo, hi = np.array(lo), np.array(hi)
+            p = lo + rng.random((n, 3)) * (hi - lo)
+            face = rng.integers(0, 6, n)
+            axis = face // 2
+            p[np.arange(n), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
+            out.append(p)
+        return np.concatenate(out)
+
+    import torch
+
+    R = axis_angle_to_matrix(torch.tensor([0.1, 0.35, -0.05], dtype=torch.float64)).numpy()
+    T_gt = np.eye(4)
+    T_gt[:3, :3], T_gt[:3, 3] = R, [0.5, -0.3, 0.1]
+    src_points = (sample(20_000) - T_gt[:3, 3]) @ R
+    write_ply(tmp_path / "src.ply", src_points)
+    write_ply(tmp_path / "tgt.ply", sample(20_000))
+    turn = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(8.0)], dtype=torch.float64))
+    c = R @ src_points.mean(0) + T_gt[:3, 3]
+    P = np.eye(4)
+    P[:3, :3] = turn.numpy()
+    P[:3, 3] = c - P[:3, :3] @ c + [0.12, -0.16, 0.0]
+    return tmp_path / "src.ply", tmp_path / "tgt.ply", T_gt, P @ T_gt
+
+
+def test_init_registers_locally_and_reports_the_path_and_the_correction(runner, tmp_path):
+    from byoc_cli.io import write_transform
+
+    src, tgt, T_gt, guess = _room_files(tmp_path)
+    write_transform(tmp_path / "init.txt", guess)
+    out, report = tmp_path / "T.txt", tmp_path / "r.json"
+    args = ["register", str(src), str(tgt), "--init", str(tmp_path / "init.txt")]
+    res = runner.invoke(cli, [*args, "-o", str(out), "--json", str(report)])
+    assert res.exit_code == 0, res.output
+    T = read_transform(out)
+    assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 0.5
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.01
+    data = json.loads(report.read_text())
+    assert data["path"] == "local" and data["features"] == "none"
+    init = data["init"]
+    assert init["file"] == str(tmp_path / "init.txt") and init["inside_trust_region"]
+    assert init["correction"]["rotation_deg"] == pytest.approx(8.0, abs=0.5)
+    assert init["correction"]["translation"] == pytest.approx(0.2, abs=0.01)
+    assert init["trust_region"] == {"rotation_deg": 20.0, "translation": pytest.approx(0.5)}
+    assert "from --init (local)" in res.stderr and "correction 8." in res.stderr
+    # without --init the report says so too
+    res = runner.invoke(cli, ["register", str(src), str(tgt), "--json", "-", "-q"])
+    assert json.loads(res.stdout)["path"] == "global"
+    assert json.loads(res.stdout)["init"] is None
+
+
+def test_init_beyond_max_correction_exits_3_and_says_why(runner, tmp_path):
+    from byoc_cli.io import write_transform
+
+    src, tgt, _, guess = _room_files(tmp_path)
+    write_transform(tmp_path / "init.txt", guess)
+    out = tmp_path / "T.txt"
+    args = ["register", str(src), str(tgt), "--init", str(tmp_path / "init.txt"), "-o", str(out)]
+    res = runner.invoke(cli, [*args, "--max-correction", "4"])
+    assert res.exit_code == 3, res.output
+    assert "beyond --max-correction 4.0 deg / 50.0 cm" in res.stderr
+    assert out.exists()  # written all the same, as below the gate
+    res = runner.invoke(cli, [*args, "--max-correction", "30,0.05"])
+    assert res.exit_code == 3 and "beyond --max-correction 30.0 deg / 5.0 cm" in res.stderr
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (None, "init.txt"),
+        ("1 0 0\n0 1 0\n0 0 1\n", "expected a 4x4 matrix"),
+        ("1 0 0 0\n0 1 0 0\n0 0 -1 0\n0 0 0 1\n", "reflection"),
+        ("not numbers\n", "not a numeric matrix"),
+    ],
+)
+def test_a_bad_init_file_exits_1_naming_it_and_writes_nothing(runner, tmp_path, content, message):
+    src, tgt, _, _ = _room_files(tmp_path)
+    init = tmp_path / "init.txt"
+    if content is not None:
+        init.write_text(content)
+    out, report = tmp_path / "T.txt", tmp_path / "r.json"
+    args = ["register", str(src), str(tgt), "--init", str(init), "-o", str(out)]
+    res = runner.invoke(cli, [*args, "--json", str(report)])
+    assert res.exit_code == 1
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("byoc: error:") and "init.txt" in lines[0]
+    assert message in lines[0]
+    assert not out.exists() and not report.exists()
+
+
+def test_init_options_are_checked_as_usage_errors(runner, tmp_path):
+    from byoc_cli.io import write_transform
+
+    src, tgt, _, guess = _room_files(tmp_path)
+    write_transform(tmp_path / "init.txt", guess)
+    args = ["register", str(src), str(tgt)]
+    res = runner.invoke(cli, [*args, "--max-correction", "10,0.2"])
+    assert res.exit_code == 2 and "--max-correction and --init-mode go with --init" in res.stderr
+    res = runner.invoke(cli, [*args, "--init-mode", "global"])
+    assert res.exit_code == 2
+    with_init = [*args, "--init", str(tmp_path / "init.txt")]
+    for bad in ("abc", "-5", "10,nan", "10,0.2,3", ""):
+        res = runner.invoke(cli, [*with_init, "--max-correction", bad])
+        assert res.exit_code == 2 and "--max-correction" in res.stderr, bad
+    res = runner.invoke(cli, [*with_init, "--init-mode", "nearby"])
+    assert res.exit_code == 2 and "--init-mode" in res.stderr
+    # -o may not overwrite the initial pose it reads
+    res = runner.invoke(cli, [*with_init, "-o", str(tmp_path / "init.txt")])
+    assert res.exit_code != 0 and read_transform(tmp_path / "init.txt") is not None

@@ -24,11 +24,30 @@ def test_columns_comments_and_relative_paths(tmp_path: Path):
     assert default_output_name(Path("x/a.ply"), Path("b.npy")) == "a__b.txt"
 
 
-@pytest.mark.parametrize("text", ["a\n", "a b c d\n", "# only\n", ""])
+@pytest.mark.parametrize("text", ["a\n", "a b c d e\n", "# only\n", ""])
 def test_malformed_lists_name_the_file(tmp_path: Path, text: str):
     listing = tmp_path / "p.txt"
     listing.write_text(text)
     with pytest.raises(InputError, match=r"p\.txt"):
+        read_pair_list(listing)
+
+
+def test_a_fourth_column_is_the_initial_pose_after_the_output(tmp_path: Path):
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("a.ply b.ply T.txt poses/init.txt  # guess\nc.ply d.ply\n")
+    with_init, without = read_pair_list(listing)
+    assert with_init.output == tmp_path / "T.txt"
+    assert with_init.init == tmp_path / "poses/init.txt"
+    assert without.output is None and without.init is None
+
+
+def test_an_init_column_needs_the_output_column_before_it(tmp_path: Path):
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("a.ply b.ply T.txt init.txt extra\n")
+    with pytest.raises(InputError, match=r"line 1: expected 'source target \[output \[init\]\]'"):
+        read_pair_list(listing)
+    listing.write_text("a.ply b.ply\na.ply b.ply same.txt same.txt\n")
+    with pytest.raises(InputError, match="line 2: the init column names the output column's file"):
         read_pair_list(listing)
 
 

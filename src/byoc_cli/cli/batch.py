@@ -21,6 +21,7 @@ from byoc_cli.cli.batch_summary import (
     SKIPPED,
     Summary,
     below_gate_lines,
+    init_reason,
     output_key,
     pair_record,
     recorded_below,
@@ -38,6 +39,7 @@ from byoc_cli.cli.options import (
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
     cloud_factors,
+    init_options,
     input_options,
     registrar,
 )
@@ -83,7 +85,8 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     "register-batch",
     epilog="Exit codes: 0 every pair registered (or skipped); 1 bad input, or a pair failed "
     "(the others are still registered); 2 usage error; 3 a pair registered below "
-    "--min-confidence (its T file is still written), or skipped whose recorded confidence "
+    "--min-confidence or, from an initial pose, beyond --max-correction (its T file is "
+    "still written), or skipped whose recorded confidence "
     "is below it; such pairs are named on stderr (the first 10, then a count).",
 )
 @click.argument("pairs", type=click.Path(path_type=Path, dir_okay=False))
@@ -114,6 +117,7 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     help="Clouds whose features are kept in memory for later pairs (least recently used "
     "dropped first).",
 )
+@init_options
 @recipe_options(*PAIRWISE)
 @input_options
 @device_option
@@ -128,9 +132,13 @@ def register_batch(
     cache_size: int,
     **options: Any,
 ) -> None:
-    """Register every pair of PAIRS, a text file of 'source target [output]' lines
+    """Register every pair of PAIRS, a text file of 'source target [output [init]]' lines
     ('#' comments and blank lines allowed; paths relative to the file), writing one T file
     per pair and a JSON Lines summary; every option of `byoc register` applies to each pair.
+
+    A fourth column names a file holding the pair's initial pose (4x4, as `byoc register
+    --init` takes it; the output column is then required): that pair is registered from it
+    (--init-mode, --max-correction), the others without.
 
     A rerun skips the pairs whose T file exists (--overwrite to redo them); their results as
     the summary recorded them count towards the exit code.
@@ -159,6 +167,7 @@ def register_batch(
         weights,
         recipe_file,
         *(p for e, _ in whole for p in (e.source, e.target)),
+        *(e.init for e, _ in whole if e.init is not None),
     ]
     planned = whole
     if shard is not None:
@@ -188,14 +197,14 @@ def register_batch(
 
     counts = {OK: 0, LOW_CONFIDENCE: 0, FAILED: 0, SKIPPED: len(skipped)}
     gate = recipe.gate.min_confidence
-    below: list[tuple[Any, float | None, bool]] = []  # (entry, confidence, skipped)
+    below: list[tuple] = []  # (entry, confidence, skipped, reason or None)
     started = time.perf_counter()
     with Summary(summary) as lines:
         for entry, output in skipped:
             earlier = recorded.get(output_key(output))
             lines.write(pair_record(entry, output, SKIPPED, recorded=earlier))
             if earlier is not None and recorded_below(earlier, gate):
-                below.append((entry, earlier.get("confidence"), True))
+                below.append((entry, earlier.get("confidence"), True, None))
         if made is not None:
             run = PairRunner(
                 made,
@@ -206,7 +215,12 @@ def register_batch(
                     "intrinsics": intrinsics,
                     "depth_scale": options["depth_scale"],
                 },
-                {"min_confidence": recipe.gate.min_confidence, "device": device},
+                {
+                    "min_confidence": recipe.gate.min_confidence,
+                    "device": device,
+                    "max_correction": options.get("max_correction"),
+                    "init_mode": options.get("init_mode"),
+                },
                 inputs,
             )
             with _Progress(len(todo)) as progress:
@@ -215,12 +229,12 @@ def register_batch(
                     counts[record["status"]] += 1
                     lines.write(record)
                     if record["status"] == LOW_CONFIDENCE:
-                        below.append((entry, record["confidence"], False))
+                        below.append((entry, record["confidence"], False, init_reason(record)))
                     progress.advance(f"{counts[FAILED]} failed")
                     if record["status"] == FAILED:
                         click.echo(f"byoc: error: line {entry.line}: {record['error']}", err=True)
     seconds = time.perf_counter() - started
-    skipped_below = sum(1 for *_, was_skipped in below if was_skipped)
+    skipped_below = sum(1 for _, _, was_skipped, _ in below if was_skipped)
     if not is_quiet(False):  # -q: the failures' lines (errors), the summary file and the code
         for line in below_gate_lines(below, gate, summary):
             click.echo(line, err=True)

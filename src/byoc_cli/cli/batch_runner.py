@@ -70,6 +70,8 @@ class PairRunner:
     def __init__(self, registrar, cache, load: dict, gate: dict, inputs) -> None:
         self.registrar, self.cache, self.load, self.inputs = registrar, cache, load, inputs
         self.min_confidence, self.device = gate["min_confidence"], gate["device"]
+        #: ``max_correction`` and ``init_mode`` of the pairs with an init column
+        self.init = {k: gate.get(k) for k in ("max_correction", "init_mode")}
 
     def in_order(self, todo) -> Iterator[tuple[Any, float]]:
         """:meth:`compute` of every ``(entry, output)`` of ``todo``, run side by side on the
@@ -103,6 +105,9 @@ class PairRunner:
                 voxels = [
                     (choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)
                 ]
+            guess = self._guess(entry)
+            if guess is not None and guess.mode == "local":
+                return self._local(cloud_src, cloud_tgt, choice, guess, timings), _since(started)
             src = self._features(cloud_src, voxels[0], timings, "features_src")
             tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
             result = self.registrar.match(src, tgt)
@@ -110,9 +115,48 @@ class PairRunner:
                 timings={**timings, **result.timings},
                 voxel_choice=None if choice is None else choice.as_dict(),
             )
+            if guess is not None:
+                from byoc_cli.pipeline.local import check_global
+
+                pair = self._pair(cloud_src, cloud_tgt, choice)
+                result = check_global(self.registrar, result, pair, guess, dict(timings))
         except Exception as exc:  # one bad pair must not stop the others
             result = exc
         return result, time.perf_counter() - started
+
+    def _guess(self, entry):
+        """The :class:`~byoc_cli.pipeline.local.InitialPose` of the pair's init column (None:
+        the line has none).
+
+        Raises:
+            InputError: the init file cannot be read as a rigid 4x4 transform.
+        """
+        if entry.init is None:
+            return None
+        from byoc_cli.io import read_transform
+        from byoc_cli.pipeline.local import InitialPose
+
+        T_init = read_transform(entry.init)
+        return InitialPose.of(
+            T_init, self.init["max_correction"], self.init["init_mode"] or "local"
+        )
+
+    def _pair(self, cloud_src, cloud_tgt, choice):
+        """The :class:`~byoc_cli.pipeline.local.LocalPair` of two cached clouds and the pair's
+        voxel choice (None: the registrar's voxel); ``T`` in the target's units."""
+        from byoc_cli.pipeline.local import LocalPair
+
+        units = self.load["factors"][0][1]
+        voxel = self.registrar.voxel_size if choice is None else choice.refine_voxel
+        as_dict = None if choice is None else choice.as_dict()
+        return LocalPair((cloud_src[0], cloud_tgt[0]), voxel, units or 1.0, as_dict)
+
+    def _local(self, cloud_src, cloud_tgt, choice, guess, timings: dict):
+        """The local registration of a pair from its initial pose (no features)."""
+        from byoc_cli.pipeline.local import register_local
+
+        pair = self._pair(cloud_src, cloud_tgt, choice)
+        return register_local(self.registrar, pair, guess.T, guess.trust, timings)
 
     def _cloud(self, path: Path, label: str, factor: float | None, timings: dict):
         """``(points, name, CloudScale | None, key)`` of a file times its ``factor`` to metres,
@@ -172,8 +216,13 @@ class PairRunner:
             "depth_scale": self.load["depth_scale"],
             "device": self.device,
             "started": time.perf_counter(),
+            "init_file": entry.init,
         }
         report = registration_report(result, self.registrar, (entry.source, entry.target), run)
         del report["timings_s"]["command"]
         report["timings_s"]["pair"] = seconds
         return {**pair_record(entry, output, OK if result.passed else LOW_CONFIDENCE), **report}
+
+
+def _since(start: float) -> float:
+    return time.perf_counter() - start

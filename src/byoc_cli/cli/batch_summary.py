@@ -30,8 +30,8 @@ def output_key(output: Path) -> str:
 def recorded_results(summary: Path) -> dict[str, dict]:
     """The last registered result (status ``ok`` or ``low_confidence``) an earlier run
     recorded in ``summary`` for each T file: ``{output key: {"status", "confidence",
-    "min_confidence"}}``; empty when there is no summary or it cannot be read (a line cut by
-    a kill is passed over)."""
+    "min_confidence", "beyond_trust_region"}}``; empty when there is no summary or it cannot
+    be read (a line cut by a kill is passed over)."""
     import json
 
     from byoc_cli.errors import InputError
@@ -52,7 +52,9 @@ def recorded_results(summary: Path) -> dict[str, dict]:
                 output = record.get("output")
                 if isinstance(output, str):
                     keep = ("status", "confidence", "min_confidence")
-                    found[output_key(Path(output))] = {k: record.get(k) for k in keep}
+                    earlier = {k: record.get(k) for k in keep}
+                    earlier["beyond_trust_region"] = init_reason(record) is not None
+                    found[output_key(Path(output))] = earlier
     except InputError as exc:
         log.warning("the statuses of pairs done earlier are not known: %s", exc)
     return found
@@ -60,24 +62,47 @@ def recorded_results(summary: Path) -> dict[str, dict]:
 
 def recorded_below(recorded: dict, gate: float) -> bool:
     """Whether a recorded result is below this run's gate (its confidence against ``gate``;
-    without a confidence, its recorded status)."""
+    without a confidence, its recorded status); one that left its initial pose's trust region
+    never passes."""
+    if recorded.get("beyond_trust_region"):
+        return True
     confidence = recorded.get("confidence")
     if isinstance(confidence, int | float) and not isinstance(confidence, bool):
         return confidence < gate
     return recorded.get("status") == LOW_CONFIDENCE
 
 
+def init_reason(record: dict) -> str | None:
+    """Why a pair registered from its initial pose did not pass other than its confidence
+    (the result left the trust region; None: it did not, or there was no initial pose)."""
+    init = record.get("init") or {}
+    if not init:
+        return None
+
+    def moved(c: dict) -> str:
+        return f"{c['rotation_deg']:.1f} deg / {c['translation']:.4g}"
+
+    bound = f"--max-correction {moved(init['trust_region'])}"
+    if init.get("check") == "disagrees":
+        return (
+            f"the global result lies {moved(init['correction'])} from its init, beyond {bound}, "
+            "and the local registration from the init did not pass"
+        )
+    if record.get("path") == "local" and not init.get("inside_trust_region", True):
+        return f"the result moved {moved(init['correction'])} from its init, beyond {bound}"
+    return None
+
+
 def below_gate_lines(pairs: list, gate: float, summary: Path) -> list[str]:
-    """The ``(entry, confidence, skipped)`` ``pairs`` below the gate, one line each up to
-    :data:`NAMED_BELOW_GATE`, then a count."""
+    """The ``(entry, confidence, skipped, reason)`` ``pairs`` that did not pass, one line each
+    up to :data:`NAMED_BELOW_GATE`, then a count (``reason``: :func:`init_reason`, or None for
+    a confidence below the gate)."""
     lines = []
-    for entry, confidence, was_skipped in pairs[:NAMED_BELOW_GATE]:
+    for entry, confidence, was_skipped, reason in pairs[:NAMED_BELOW_GATE]:
         shown = "unknown" if confidence is None else f"{confidence:.3f}"
         when = " (recorded by an earlier run; T file kept)" if was_skipped else ""
-        lines.append(
-            f"byoc: line {entry.line}: {entry.source} -> {entry.target}: confidence {shown} "
-            f"is below --min-confidence {gate:g}{when}"
-        )
+        why = reason or f"confidence {shown} is below --min-confidence {gate:g}"
+        lines.append(f"byoc: line {entry.line}: {entry.source} -> {entry.target}: {why}{when}")
     if len(pairs) > NAMED_BELOW_GATE:
         lines.append(
             f"byoc: and {len(pairs) - NAMED_BELOW_GATE} more pairs below --min-confidence "

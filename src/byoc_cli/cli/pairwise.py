@@ -15,7 +15,16 @@ from typing import Any
 import click
 
 from byoc_cli.cli.display import is_quiet, progress_bar
-from byoc_cli.cli.options import DEPTH_SCALE, SCALE, apply, float_option, path_option
+from byoc_cli.cli.options import (
+    DEGREES,
+    DEPTH_SCALE,
+    LENGTH,
+    SCALE,
+    apply,
+    choice_option,
+    float_option,
+    path_option,
+)
 
 log = logging.getLogger("byoc")
 
@@ -60,6 +69,66 @@ input_options = apply(
 )
 
 
+#: the defaults of ``--max-correction`` (byoc_cli.pipeline.local, without importing numpy)
+MAX_CORRECTION_DEG, MAX_CORRECTION_VOXELS = 20.0, 20.0
+
+
+class MaxCorrection(click.ParamType):
+    """``DEG`` or ``DEG,DIST``: the trust region of a registration from an initial pose
+    (``DIST`` in the input's units; without it, the default)."""
+
+    name = "DEG[,DIST]"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        if isinstance(value, tuple):
+            return value
+        parts = str(value).split(",")
+        if len(parts) not in (1, 2) or not parts[0].strip():
+            self.fail(f"{value!r} is not DEG or DEG,DIST (for example 20,0.5).", param, ctx)
+        degrees = DEGREES.convert(parts[0].strip(), param, ctx)
+        distance = LENGTH.convert(parts[1].strip(), param, ctx) if len(parts) == 2 else None
+        return degrees, distance
+
+
+#: how a registration uses an initial pose (``register --init``, ``register-batch``'s init
+#: column)
+init_options = apply(
+    click.option(
+        "--max-correction",
+        type=MaxCorrection(),
+        default=None,
+        help="With an initial pose: how far the result may move from it, the rotation in "
+        "degrees and the distance the source's centroid moves, in the input's units; beyond "
+        f"it the registration exits 3 [default: {MAX_CORRECTION_DEG:g} deg and "
+        f"{MAX_CORRECTION_VOXELS:g} refinement voxels, 0.5 m at depth-camera scale].",
+    ),
+    choice_option(
+        "--init-mode",
+        choices=["local", "global"],
+        default=None,
+        help="With an initial pose: 'local' refines from it (no features) [default]; "
+        "'global' registers without it, then keeps that result when it lies inside "
+        "--max-correction of the pose and passes the gate, else the local result from the "
+        "pose when that passes, else exits 3 (docs/poses.md).",
+    ),
+)
+
+
+def init_settings(T_init, options: dict) -> dict:
+    """The keywords of :meth:`~byoc_cli.pipeline.registrar.Registrar.register` for the initial
+    pose ``T_init (4, 4)`` (None: none) and the ``max_correction`` and ``init_mode`` options.
+
+    Raises:
+        click.UsageError: ``--max-correction`` or ``--init-mode`` without an initial pose.
+    """
+    mode, trust = options.get("init_mode"), options.get("max_correction")
+    if T_init is None:
+        if mode is not None or trust is not None:
+            raise click.UsageError("--max-correction and --init-mode go with --init")
+        return {}
+    return {"init": T_init, "max_correction": trust, "init_mode": mode or "local"}
+
+
 def cloud_factors(options: dict) -> tuple[tuple[float | None, float | None], bool]:
     """Each cloud's factor to metres from a command's ``scale``, ``source_scale`` and
     ``target_scale`` options: ``((source, target), both given)``. A per-cloud option wins over
@@ -74,10 +143,11 @@ def cloud_factors(options: dict) -> tuple[tuple[float | None, float | None], boo
     return ((1.0 if src is None else src), (1.0 if tgt is None else tgt)), both
 
 
-def register_pair(made, source, target, factors: tuple, load: dict):
+def register_pair(made, source, target, factors: tuple, load: dict, guess: dict | None = None):
     """Register ``source`` onto ``target`` with ``made`` (a
     :class:`~byoc_cli.pipeline.registrar.Registrar`) and each cloud's factor to metres
-    (:func:`cloud_factors`); ``load``: ``intrinsics`` and ``depth_scale``.
+    (:func:`cloud_factors`); ``load``: ``intrinsics`` and ``depth_scale``; ``guess``: the
+    initial pose's keywords (:func:`init_settings`).
 
     With one factor for both, the registrar reads the files (``scale``). With two, the source
     is read into the target's units (its factor over the target's) and both go to the
@@ -86,11 +156,12 @@ def register_pair(made, source, target, factors: tuple, load: dict):
     from byoc_cli.pipeline.inputs import load_cloud
 
     src, tgt = factors
+    guess = guess or {}
     if src == tgt:
-        return made.register(source, target, scale=src, **load)
+        return made.register(source, target, scale=src, **load, **guess)
     points_src = load_cloud(source, scale=src / tgt, **load)
     points_tgt = load_cloud(target, scale=1.0, **load)
-    return made.register(points_src, points_tgt, scale=tgt, **load)
+    return made.register(points_src, points_tgt, scale=tgt, **load, **guess)
 
 
 def registrar(recipe, device: str):
@@ -186,7 +257,8 @@ def format_length(value: float, unit: str | None) -> str:
 def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -> dict:
     """The JSON report of one registration (``register --json``, a line of the batch
     summary); ``run``: ``min_confidence``, ``scale``, ``device`` and ``started`` (the
-    ``perf_counter`` the command started at), ``factors``: each cloud's factor to metres
+    ``perf_counter`` the command started at), ``init_file`` (the initial pose's file, or
+    None), ``factors``: each cloud's factor to metres
     (:func:`cloud_factors`) and ``factors_given``: whether both were given. ``voxel_size``
     and ``inlier_threshold`` are in the units ``unit`` names: ``"m"``, or None for the
     inputs' own (:func:`known_unit`)."""
@@ -195,11 +267,16 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
     from byoc_cli import __version__
 
     timings = {**result.timings, "command": time.perf_counter() - run["started"]}
+    init = result.init
+    if init is not None and run.get("init_file") is not None:
+        init = {"file": str(run["init_file"]), **init}
     return {
         "source": str(pair[0]),
         "target": str(pair[1]),
         "T_tgt_src": result.T_tgt_src.tolist(),
         "convention": "x_tgt = R x_src + t; T is 4x4 on column vectors",
+        "path": result.path,
+        "init": init,
         "features": result.features,
         "estimator": result.estimator,
         "refine": result.refine,

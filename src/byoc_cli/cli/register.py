@@ -32,6 +32,8 @@ from byoc_cli.cli.pairwise import (
     check_depth_inputs,
     cloud_factors,
     format_length,
+    init_options,
+    init_settings,
     input_options,
     register_pair,
     registrar,
@@ -52,6 +54,9 @@ class RegisterOptions:
     intrinsics: Path | None
     depth_scale: float | None
     device: str
+    init_path: Path | None = None
+    max_correction: tuple[float, float | None] | None = None
+    init_mode: str | None = None
 
 
 @click.command(
@@ -84,6 +89,15 @@ class RegisterOptions:
     default=None,
     help="Write a JSON report ('-' is stdout, then T goes only to -o).",
 )
+@path_option(
+    "--init",
+    "init_path",
+    default=None,
+    help="An initial pose: a guess of T (4 lines of 4 numbers, the convention of -o) from "
+    "odometry, a robot, GNSS/IMU or an earlier result. The registration refines from it (no "
+    "features) and exits 3 when it leaves --max-correction or fits poorly (docs/poses.md).",
+)
+@init_options
 @recipe_options(*PAIRWISE)
 @input_options
 @device_option
@@ -112,17 +126,19 @@ def register(
     output = main_output(output, json_path)
     check_depth_inputs((source, target), o.intrinsics)
     check_binary_stdout(aligned, "--aligned")
+    init_settings(o.init_path, options)  # usage errors first
+    inputs = (source, target, o.intrinsics, recipe_file, _path(recipe.features.weights))
     outputs = claim_outputs(
-        {"-o": output, "--aligned": aligned, "--json": json_path},
-        inputs=(source, target, o.intrinsics, recipe_file, _path(recipe.features.weights)),
+        {"-o": output, "--aligned": aligned, "--json": json_path}, inputs=(*inputs, o.init_path)
     )
-    from byoc_cli.io import atomic_write_text, format_transform, write_ply
+    from byoc_cli.io import atomic_write_text, format_transform, read_transform, write_ply
     from byoc_cli.pipeline.inputs import load_cloud
 
+    guess = init_settings(None if o.init_path is None else read_transform(o.init_path), options)
     made = registrar(recipe, o.device)
     factors, factors_given = cloud_factors(options)
     load = {"intrinsics": o.intrinsics, "depth_scale": o.depth_scale}
-    result = register_pair(made, source, target, factors, load)
+    result = register_pair(made, source, target, factors, load, guess)
     min_confidence = recipe.gate.min_confidence
     run = {
         "min_confidence": min_confidence,
@@ -132,6 +148,7 @@ def register(
         "depth_scale": o.depth_scale,
         "device": o.device,
         "started": started,
+        "init_file": o.init_path,
     }
     report = registration_report(result, made, (source, target), run)
     T = result.T_tgt_src
@@ -160,11 +177,7 @@ def register(
         seconds = report["timings_s"]["command"]
         click.echo(summary_line(source, target, result, seconds, report["unit"]), err=True)
     if not result.passed and not quiet:
-        click.echo(
-            f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
-            f"{min_confidence:g}: T is likely wrong (written all the same)",
-            err=True,
-        )
+        click.echo(failure_line(result, min_confidence, report["unit"]), err=True)
     if not result.passed:
         raise SystemExit(EXIT_LOW_CONFIDENCE)
 
@@ -172,8 +185,15 @@ def register(
 def summary_line(source: Path, target: Path, result, seconds: float, unit: str | None) -> str:
     """The line a successful ``byoc register`` prints on stderr: confidence, inliers, the
     voxel used (in metres when ``unit`` is ``"m"``, else in input units) and the time (``-q``
-    silences it)."""
+    silences it); from an initial pose, the path, the correction and the trust region."""
     voxel = f"{result.voxel_size:g} m" if unit == "m" else f"{result.voxel_size:.4g} input units"
+    if result.path == "local":
+        return (
+            f"byoc: registered {source} -> {target} from --init (local): confidence "
+            f"{result.confidence:.3f}, correction {_moved(result.init['correction'], unit)} "
+            f"(--max-correction {_moved(result.init['trust_region'], unit)}), fitness "
+            f"{result.inlier_ratio:.2f}, voxel {voxel}, {seconds:.1f} s"
+        )
     line = (
         f"byoc: registered {source} -> {target}: confidence {result.confidence:.3f}, "
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
@@ -184,7 +204,38 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
             f" (FPFH features: the learned ones reached confidence "
             f"{result.fallback['learned_confidence']:.3f})"
         )
+    if result.init is not None:
+        line += f" (global; {_moved(result.init['correction'], unit)} from --init)"
     return line
+
+
+def failure_line(result, min_confidence: float, unit: str | None) -> str:
+    """The line ``byoc register`` prints on stderr when it exits 3: why T is likely wrong."""
+    init = result.init or {}
+    written = "T is likely wrong (written all the same)"
+    if init.get("check") == "disagrees":
+        return (
+            f"byoc: the global result lies {_moved(init['correction'], unit)} from --init, "
+            f"beyond --max-correction {_moved(init['trust_region'], unit)}, and the local "
+            f"registration from --init did not pass (confidence "
+            f"{init['local']['confidence']:.3f}): {written}"
+        )
+    if result.path == "local" and not init["inside_trust_region"]:
+        return (
+            f"byoc: the result moved {_moved(init['correction'], unit)} from --init, beyond "
+            f"--max-correction {_moved(init['trust_region'], unit)}: {written}"
+        )
+    return (
+        f"byoc: confidence {result.confidence:.3f} is below --min-confidence "
+        f"{min_confidence:g}: {written}"
+    )
+
+
+def _moved(correction: dict, unit: str | None) -> str:
+    """``12.3 deg / 45.6 cm`` of a correction or trust region (its translation in ``unit``)."""
+    return (
+        f"{correction['rotation_deg']:.1f} deg / {format_length(correction['translation'], unit)}"
+    )
 
 
 def _path(name: str | None) -> Path | None:

@@ -1,7 +1,9 @@
-"""Pair-list files of ``byoc register-batch``: ``source target [output]`` a line.
+"""Pair-list files of ``byoc register-batch``: ``source target [output [init]]`` a line.
 
 Blank lines and ``#`` comments (whole lines, or the rest of a line) are ignored; columns are
-separated by whitespace; relative paths are relative to the list file's folder.
+separated by whitespace; relative paths are relative to the list file's folder. The fourth
+column names a file holding an initial pose of the pair (a 4x4 ``T_tgt_src``, as the T files);
+a line with one has its output column too (the third column is always the output).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ class PairEntry(NamedTuple):
         line: line number in the file (1-based), for messages.
         source, target: the clouds, resolved against the list's folder.
         output: the T file of the third column (resolved the same way), or None.
+        init: the initial pose's file of the fourth column (resolved the same way), or None.
     """
 
     index: int
@@ -35,6 +38,7 @@ class PairEntry(NamedTuple):
     source: Path
     target: Path
     output: Path | None
+    init: Path | None = None
 
 
 def _resolve(folder: Path, text: str) -> Path:
@@ -47,8 +51,9 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
 
     Raises:
         InputError: naming the file (and the line): unreadable, not a regular file, larger
-            than a pair list may be, not UTF-8 text, a line with fewer than 2 or more than 3
-            columns, more than :data:`MAX_PAIRS` pairs, or no pair at all.
+            than a pair list may be, not UTF-8 text, a line with fewer than 2 or more than 4
+            columns, a line whose init column names its output, more than :data:`MAX_PAIRS`
+            pairs, or no pair at all.
     """
     path = Path(path)
     if path.is_dir():
@@ -57,7 +62,7 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
         text = read_input(path, "pair list").decode("utf-8")
     except UnicodeDecodeError as exc:
         raise InputError(
-            path, "is not a UTF-8 text file of 'source target [output]' lines"
+            path, "is not a UTF-8 text file of 'source target [output [init]]' lines"
         ) from exc
     folder = path.parent
     pairs: list[PairEntry] = []
@@ -66,14 +71,20 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
         columns = raw.split("#", 1)[0].split()
         if not columns:
             continue
-        if len(columns) not in (2, 3):
+        if len(columns) not in (2, 3, 4):
             raise InputError(
                 path,
-                f"line {number}: expected 'source target [output]', got {len(columns)} column(s)",
+                f"line {number}: expected 'source target [output [init]]' (an init column "
+                f"comes after the output column), got {len(columns)} column(s)",
             )
         if len(pairs) == MAX_PAIRS:
             raise InputError(path, f"holds more than {MAX_PAIRS:,} pairs; split the list")
-        output = _resolve(folder, columns[2]) if len(columns) == 3 else None
+        output = _resolve(folder, columns[2]) if len(columns) >= 3 else None
+        init = _resolve(folder, columns[3]) if len(columns) == 4 else None
+        if init is not None and init == output:
+            raise InputError(
+                path, f"line {number}: the init column names the output column's file {output}"
+            )
         pairs.append(
             PairEntry(
                 len(pairs),
@@ -81,10 +92,11 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
                 _resolve(folder, columns[0]),
                 _resolve(folder, columns[1]),
                 output,
+                init,
             )
         )
     if not pairs:
-        raise InputError(path, "holds no pair (lines of 'source target [output]')")
+        raise InputError(path, "holds no pair (lines of 'source target [output [init]]')")
     return pairs
 
 

@@ -64,9 +64,10 @@ class RefineClouds:
         self._clouds: OrderedDict[int, tuple[np.ndarray, Any]] = OrderedDict()
         self._lock = threading.Lock()
 
-    def get(self, cloud: np.ndarray, voxel: float, local) -> Any:
+    def get(self, cloud: np.ndarray, voxel: float, local, pyramid: bool = False) -> Any:
         """The refinement cloud of ``cloud (N, 3)`` at ``voxel``; on a miss it is made from
-        ``local()``, the cloud in its local frame (its levels are built on use)."""
+        ``local()``, the cloud in its local frame (its levels are built on use; ``pyramid``:
+        see :class:`~byoc_cli.pipeline.refine_levels.RefineCloud`)."""
         from byoc_cli.pipeline.refine_levels import RefineCloud
 
         key = id(cloud)
@@ -75,7 +76,7 @@ class RefineClouds:
             if hit is not None and hit[0] is cloud and hit[1].voxel_size == voxel:
                 self._clouds.move_to_end(key)
                 return hit[1]
-            prepared = RefineCloud(local(), voxel)
+            prepared = RefineCloud(local(), voxel, pyramid=pyramid)
             self._clouds[key] = (cloud, prepared)  # holds the array: its id stays its own
             while len(self._clouds) > self.size:
                 self._clouds.popitem(last=False)

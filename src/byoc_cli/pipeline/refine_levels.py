@@ -104,6 +104,15 @@ class RefineCloud:
                 self._sources[level, max_points] = p[:: max(1, -(-len(p) // max_points))]
             return self._sources[level, max_points]
 
+    def oriented_source(
+        self, level: int, max_points: int = MAX_SOURCE_POINTS
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`source` of ``level`` ``(K, 3)`` and the ``(K, 3)`` unit normals of those
+        points (the ones the level has as a target)."""
+        p = self.source(level, max_points)
+        n = self.target(level)[1]
+        return p, n[:: max(1, -(-len(n) // max_points))]
+
     def target(self, level: int) -> tuple[torch.Tensor, torch.Tensor, CellIndex]:
         """``(M, 3)`` target points of ``level``, their ``(M, 3)`` normals, and a
         :class:`CellIndex` over them at the level's voxel."""

@@ -25,10 +25,11 @@ from typing import TYPE_CHECKING, Any
 from byoc_cli.pipeline.engine_recipe import FROM_RECIPE, registrar_recipe, resolve_device
 from byoc_cli.pipeline.fallback import Fallback
 from byoc_cli.pipeline.featurizer import Featurizer
+from byoc_cli.pipeline.local import InitialPose
 from byoc_cli.pipeline.memo import RefineClouds
 from byoc_cli.pipeline.pair import match_pair, same_voxel, scan_lines
 from byoc_cli.pipeline.results import Features, Registration
-from byoc_cli.pipeline.sequence import register_pair
+from byoc_cli.pipeline.sequence import register_from_init, register_pair
 from byoc_cli.threads import in_worker, side_by_side
 
 if TYPE_CHECKING:
@@ -90,6 +91,7 @@ class Registrar(Featurizer):
         self._executor = None
         self._lock = threading.Lock()
         self._refine = RefineClouds(self.CACHE)
+        self._coarse = RefineClouds(self.CACHE)  # the local path's coarse pass
         self._fallback = Fallback("auto" if self.auto_voxel else 2.0 * self.voxel_size)
 
     def executor(self):
@@ -113,10 +115,14 @@ class Registrar(Featurizer):
 
     def _refine_cloud(self, feats: Features):
         """The :class:`~byoc_cli.pipeline.refine_levels.RefineCloud` of ``feats.cloud``."""
-        voxel = feats.refine_voxel or feats.voxel_size
-        return self._refine.get(
-            feats.cloud, voxel, lambda: self.frame(feats.cloud).local(feats.cloud)
-        )
+        return self.refinement_cloud(feats.cloud, feats.refine_voxel or feats.voxel_size)
+
+    def refinement_cloud(self, points, voxel: float, within: Any = None):
+        """The ``RefineCloud`` of ``points (N, 3)`` (local frame) at ``voxel``, kept for later
+        pairs; ``within``: the one whose finest averages make it (the local path's coarse pass)."""
+        if within is not None:
+            return self._coarse.get(points, voxel, lambda: within.average(0), pyramid=True)
+        return self._refine.get(points, voxel, lambda: self.frame(points).local(points))
 
     def recipe_of(
         self,
@@ -202,6 +208,7 @@ class Registrar(Featurizer):
         scale: float | None = None,
         intrinsics: str | os.PathLike[str] | None = None,
         depth_scale: float | None = None,
+        init: Any = None,
         **settings: Any,
     ) -> Registration:
         """Read both clouds, extract their features and :meth:`match` them
@@ -212,6 +219,21 @@ class Registrar(Featurizer):
         :meth:`match`'s keywords. ``timings`` also hold ``load`` (both reads), ``scale``,
         ``features_src``, ``features_tgt``, ``prepare_src``, ``prepare_tgt`` (multiscale
         levels) and ``total`` (wall time).
+
+        ``init``: a ``(4, 4)`` guess of ``T_tgt_src`` in the input's units: the local
+        registration from it (:mod:`byoc_cli.pipeline.local`) within ``max_correction`` (in
+        ``settings``: ``(degrees, distance in input units or None)``); ``init_mode="global"``
+        checks the global one against it (:func:`~byoc_cli.pipeline.sequence.register_from_init`).
+
+        Raises:
+            ValueError: a bad ``init``, ``max_correction`` or ``init_mode``, or either of the
+                latter without ``init`` (:meth:`~byoc_cli.pipeline.local.InitialPose.of`).
         """
         load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
-        return register_pair(self, (source, target), scale, load, settings)
+        trust, mode = settings.pop("max_correction", None), settings.pop("init_mode", "local")
+        if init is None and (trust is not None or mode != "local"):
+            raise ValueError("max_correction and init_mode go with an init")
+        if init is None:
+            return register_pair(self, (source, target), scale, load, settings)
+        guess = InitialPose.of(init, trust, mode)
+        return register_from_init(self, (source, target), scale, load, settings, guess)

@@ -75,6 +75,14 @@ class Registration(NamedTuple):
         recipe: the recipe that ran
             (:meth:`byoc_cli.pipeline.recipe.RegistrationRecipe.as_dict`; the fallback's
             when its result is kept).
+        path: ``"global"`` (features, matching, robust fit, refinement) or ``"local"`` (the
+            refinement from an initial pose, :mod:`byoc_cli.pipeline.local`: ``features`` and
+            ``estimator`` read ``"none"``, the inliers are the refinement's finest level).
+        init: with an initial pose: ``T_init``, the ``correction`` of the result from it
+            (``rotation_deg``, ``translation`` of the source's centroid, input units), the
+            ``trust_region`` and ``inside_trust_region``; with ``init_mode="global"`` also
+            ``mode`` and ``check`` (:func:`byoc_cli.pipeline.sequence.register_from_init`).
+            None without one.
     """
 
     T_tgt_src: np.ndarray
@@ -100,3 +108,5 @@ class Registration(NamedTuple):
     cues: dict[str, float] | None = None
     fallback: dict | None = None
     recipe: dict | None = None
+    path: str = "global"
+    init: dict | None = None

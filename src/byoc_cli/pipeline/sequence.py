@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from byoc_cli.pipeline.local import LocalPair, check_global, register_local
 from byoc_cli.pipeline.memo import InPlace, all_done
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.threads import in_worker
@@ -76,6 +77,51 @@ def register_pair(
     return result._replace(
         timings=timings, voxel_choice=None if choice is None else choice.as_dict()
     )
+
+
+def register_from_init(
+    made: Any, clouds: tuple[Any, Any], scale: float | None, load: dict, settings: dict, guess
+) -> Registration:
+    """Register ``clouds`` with ``made`` from ``guess``, an
+    :class:`~byoc_cli.pipeline.local.InitialPose`: its ``mode`` ``"local"`` reads and
+    measures both clouds, chooses the pair's voxel and runs the local registration
+    (:func:`~byoc_cli.pipeline.local.register_local`); ``"global"`` runs
+    :func:`register_pair` first and checks its result against the guess
+    (:func:`~byoc_cli.pipeline.local.check_global`). Arguments as :func:`register_pair`'s.
+    """
+    found = register_pair(made, clouds, scale, load, settings) if guess.mode == "global" else None
+    pair, timings = local_pair(made, clouds, scale, load)
+    if found is None:
+        return register_local(made, pair, guess.T, guess.trust, timings)
+    return check_global(made, found, pair, guess, timings)
+
+
+def local_pair(
+    made: Any, clouds: tuple[Any, Any], scale: float | None, load: dict
+) -> tuple[LocalPair, dict[str, float]]:
+    """Both clouds read and measured side by side on ``made``'s workers, with the pair's
+    refinement voxel (the auto choice's, else the registrar's voxel): the
+    :class:`~byoc_cli.pipeline.local.LocalPair` and the seconds of ``load`` and ``scale``."""
+    pool = InPlace() if in_worker() else made.executor()
+    labels = ("source", "target")
+    read = [
+        pool.submit(_loaded, made, c, k, scale, load) for c, k in zip(clouds, labels, strict=True)
+    ]
+    (src, _, src_scale, t_src), (tgt, _, tgt_scale, t_tgt) = (
+        job.result() for job in all_done(read)
+    )
+    start = time.perf_counter()
+    voxel, choice = made.voxel_size, None
+    if made.auto_voxel:
+        choice = made.voxel_for(src_scale, tgt_scale)
+        voxel = choice.refine_voxel
+    timings = {
+        "load": t_src["load"] + t_tgt["load"],
+        "scale": t_src["scale"] + t_tgt["scale"] + time.perf_counter() - start,
+    }
+    factor = 1.0 if scale is None else float(scale)
+    as_dict = None if choice is None else choice.as_dict()
+    return LocalPair((src, tgt), voxel, factor, as_dict), timings
 
 
 def _loaded(
