@@ -11,7 +11,9 @@ Methods, all in this process except the batch timing:
 * ``open3d``: Open3D's multiscale point-to-plane ICP from the same guess (voxels 10, 5 and
   2.5 cm, correspondences within 1.5 voxels, 30 iterations each: the levels of
   `pipeline/posegraph.py`) and a wider one (voxels 20, 10, 5 and 2.5 cm, within 2 voxels);
-* ``byoc global``: `Registrar.register(src, tgt)` without the guess (the default).
+* ``byoc global``: `Registrar.register(src, tgt)` without the guess (the default);
+* ``refinement only``: the multiscale point-to-plane refinement of `byoc register` alone from
+  the guess (the local path without its coarse pass).
 
 Each result is judged against the ground truth (within 5 deg / 10 cm and 2 deg / 5 cm) and
 against the truth refined on the data (`_init_pairs.refined_truth`, where the data determine
@@ -79,6 +81,18 @@ def open3d_icp(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, levels) -> np.nd
     return np.asarray(T)
 
 
+def refinement_only(registrar, src: np.ndarray, tgt: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The multiscale point-to-plane refinement of `byoc register` alone from ``T (4, 4)``,
+    at the pair's refinement voxel: the local path without its coarse pass and its choice."""
+    import torch
+
+    from byoc_cli.pipeline.refine import refine_multiscale
+
+    voxel = registrar.choose_voxel(src, tgt).refine_voxel
+    clouds = torch.from_numpy(src), torch.from_numpy(tgt)
+    return refine_multiscale(*clouds, torch.from_numpy(T), voxel).T_tgt_src.numpy()
+
+
 def _timed(fn):
     start = time.perf_counter()
     with warnings.catch_warnings():
@@ -98,6 +112,8 @@ def _methods(registrar, src, tgt, near, far) -> dict[str, tuple]:
     for label, levels in OPEN3D_LEVELS.items():
         T, seconds = _timed(partial(open3d_icp, src, tgt, near, levels))
         results[label] = (T, None, seconds)
+    T, seconds = _timed(partial(refinement_only, registrar, src, tgt, near))
+    results["refinement only"] = (T, None, seconds)
     r, seconds = _timed(partial(registrar.register, src, tgt))
     results["byoc global"] = (r.T_tgt_src, r.passed, seconds)
     return results
@@ -171,7 +187,8 @@ def _environ() -> dict[str, str]:
 
 def table(records: list[dict], seconds: dict[str, float] | None) -> str:
     """The benchmark's table (Markdown)."""
-    methods = ["byoc --init", "open3d", "open3d wide", "byoc global", "byoc --init far"]
+    methods = ["byoc --init", "refinement only", "open3d", "open3d wide", "byoc global"]
+    methods.append("byoc --init far")
     out = [
         f"{len(records)} pairs; right against the ground truth (against the truth refined on the"
         " data, where it is determined, in brackets)",

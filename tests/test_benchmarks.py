@@ -540,3 +540,16 @@ def test_scan_lines_registers_a_16_ring_street_with_and_without_the_measures(tmp
     # the rings washed out: a coarser feature voxel, and the sensor's 4 m found
     assert with_measures["voxel"] > 3 * without["voxel"]
     assert with_measures["right"] and with_measures["translation_m"] < 0.1
+
+
+def test_init_benchmark_refuses_a_collection_without_its_file_before_running(tmp_path):
+    script = ROOT / "benchmarks" / "init.py"
+    for args, message in ((["collect"], "collect needs --out"), (["fit"], "fit needs collections")):
+        result = subprocess.run(
+            [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
+        )
+        assert result.returncode == 2 and message in result.stderr
+    result = subprocess.run(
+        [sys.executable, str(script), "bench", "--pairs", "x"], capture_output=True, text=True
+    )
+    assert result.returncode == 2 and "--pairs" in result.stderr

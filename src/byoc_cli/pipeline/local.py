@@ -62,6 +62,8 @@ SWITCH_FITNESS = 0.05
 #: source points per level of the two refinements compared (the one kept is refined again
 #: on all of them)
 PROBE_POINTS = 2000
+#: source points per level of the refinement of the one kept
+FINAL_POINTS = 20_000
 SAME_DEG, SAME_VOXELS = 1.0, 1.0
 #: the default trust region: the rotation of the correction, in degrees, and the distance the
 #: source's centroid moves, in refinement voxels (chosen from ``benchmarks/init.py``: guesses
@@ -260,7 +262,7 @@ def register_local(
     starts = torch.stack([start_local.to(torch.float64), T_coarse])
     ends, fitness = refine_starts(*fine, starts, v, max_source_points=PROBE_POINTS)
     pick, same = _pick(ends, fitness, v)
-    refined = refine_multiscale(*fine, ends[pick], v)
+    refined = refine_multiscale(*fine, ends[pick], v, max_source_points=FINAL_POINTS)
     now = _lap(timings, "refine", now)
     cues = _cues(fine, refined, T_coarse, coarse_fitness, T_local, v)
     cues["agree"] = 1.0 if same else 0.0
