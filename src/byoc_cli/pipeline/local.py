@@ -14,8 +14,9 @@ result) that is off by a few degrees and decimetres is refined where it is:
    the truth, 6 voxels 36 (the others: pairs with almost no overlap).
 2. **Refinement**: the multiscale point-to-plane refinement of every registration
    (:func:`~byoc_cli.pipeline.refine.refine_multiscale`, levels ``(v, 2v)`` to
-   ``(0.4v, 0.6v)``), from the coarse pass's end and from the guess itself; the latter is
-   kept unless the former ends elsewhere with a clearly better fit (:data:`SWITCH_FITNESS`).
+   ``(0.4v, 0.6v)``), from the coarse pass's end and (on :data:`PROBE_POINTS` points) from the
+   guess itself; the latter is kept (and refined on all points) unless the former ends
+   elsewhere with a clearly better fit (:data:`SWITCH_FITNESS`).
 3. **Trust region** (:class:`TrustRegion`): the correction ``T_result @ inv(T_init)``, as its
    rotation angle and the distance the source's centroid moved (:func:`correction`), may not
    exceed ``--max-correction`` (default :data:`MAX_CORRECTION_DEG` and
@@ -56,14 +57,16 @@ COARSE_ITERATIONS = 20
 COARSE_TOLERANCE = 1e-4
 #: fewest pairs within reach for a coarse step (fewer: the level is skipped)
 COARSE_MIN_PAIRS = 12
-#: the end of the coarse pass replaces the refinement from the guess itself when it lies
-#: elsewhere (beyond SAME_DEG or SAME_VOXELS refinement voxels) and fits better by this
+#: the refinement from the coarse pass's end replaces the one from the guess itself when it
+#: lies elsewhere (beyond SAME_DEG or SAME_VOXELS refinement voxels) and fits better by this
+#: (in a scene of a few planes the data can favour a pose 15 deg from the truth by 0.03 of
+#: fitness: a guess the refinement confirms is the better witness)
 SWITCH_FITNESS = 0.05
-#: source points per level of the two refinements compared (the one kept is refined again
-#: on all of them)
-PROBE_POINTS = 2000
-#: source points per level of the refinement of the one kept
-FINAL_POINTS = 20_000
+#: source points per level of the refinement from the guess itself (refined again on all of
+#: them when it is kept)
+PROBE_POINTS = 500
+#: source points per level of the refinement reported
+FINAL_POINTS = 5000
 SAME_DEG, SAME_VOXELS = 1.0, 1.0
 #: the default trust region: the rotation of the correction, in degrees, and the distance the
 #: source's centroid moves, in refinement voxels (chosen from ``benchmarks/init.py``: guesses
@@ -241,7 +244,6 @@ def register_local(
     import torch
 
     from byoc_cli.pipeline.refine import refine_multiscale
-    from byoc_cli.pipeline.restarts import refine_starts
 
     start = time.perf_counter()
     src_points, v, scale = pair.points[0], pair.voxel, pair.scale
@@ -258,15 +260,21 @@ def register_local(
     start_local = torch.from_numpy(T_local)
     T_coarse, coarse_fitness = align_coarse(*coarse, start_local)
     now = _lap(timings, "coarse", start)
-    # both starts refined together on a few points, the one kept again on all of them
-    starts = torch.stack([start_local.to(torch.float64), T_coarse])
-    ends, fitness = refine_starts(*fine, starts, v, max_source_points=PROBE_POINTS)
-    pick, same = _pick(ends, fitness, v)
-    refined = refine_multiscale(*fine, ends[pick], v, max_source_points=FINAL_POINTS)
+    # the coarse pass's end refined on all points, the guess itself on a few: a guess the
+    # refinement confirms is kept unless the other ends elsewhere and fits clearly better
+    far = refine_multiscale(*fine, T_coarse, v, max_source_points=FINAL_POINTS)
+    near = refine_multiscale(*fine, start_local, v, max_source_points=PROBE_POINTS)
+    same = _same_place(near.T_tgt_src, far.T_tgt_src, v)
+    keep_near = not same and far.fitness <= near.fitness + SWITCH_FITNESS
+    if keep_near:
+        refined = refine_multiscale(*fine, near.T_tgt_src, v, max_source_points=FINAL_POINTS)
+    else:
+        refined = far
+    other = far if keep_near else near
     now = _lap(timings, "refine", now)
     cues = _cues(fine, refined, T_coarse, coarse_fitness, T_local, v)
     cues["agree"] = 1.0 if same else 0.0
-    cues["other_gain"] = float(fitness[1 - pick] - fitness[pick])
+    cues["other_gain"] = other.fitness - (near.fitness if keep_near else far.fitness)
     confidence = local_probability(cues)
     T = about_origins(refined.T_tgt_src.numpy(), *origins)
     T[:3, 3] /= scale
@@ -279,7 +287,7 @@ def register_local(
     timings["total"] = timings.get("load", 0.0) + timings.get("scale", 0.0)
     timings["total"] += time.perf_counter() - start
     last = len(fine[0].levels) - 1
-    used = len(fine[0].source(last))
+    used = len(fine[0].source(last, FINAL_POINTS))
     return Registration(
         T_tgt_src=T,
         confidence=confidence,
@@ -316,20 +324,12 @@ def register_local(
     )
 
 
-def _pick(ends, fitness, voxel: float) -> tuple[int, bool]:
-    """``(index, same place)``: which of the refinement from the guess itself (``ends[0]``,
-    ``fitness[0]``) and from the coarse pass's end (``ends[1]``) is kept: the first unless the
-    second ends elsewhere and fits better by more than :data:`SWITCH_FITNESS` (a guess that
-    the refinement confirms is kept where a slightly better fit lies elsewhere: in a scene of
-    a few planes the data can favour a pose 15 deg from the truth by 0.03 of fitness, and the
-    guess is the better witness)."""
+def _same_place(T_a, T_b, voxel: float) -> bool:
+    """Whether ``T_a`` and ``T_b (4, 4)`` lie within SAME_DEG and SAME_VOXELS voxels."""
     import torch
 
-    D = torch.linalg.inv(ends[0]) @ ends[1]
-    same = _angle_deg(D[:3, :3]) < SAME_DEG and float(D[:3, 3].norm()) < SAME_VOXELS * voxel
-    if not same and float(fitness[1]) > float(fitness[0]) + SWITCH_FITNESS:
-        return 1, same
-    return 0, same
+    D = torch.linalg.inv(T_a) @ T_b
+    return _angle_deg(D[:3, :3]) < SAME_DEG and float(D[:3, 3].norm()) < SAME_VOXELS * voxel
 
 
 def _cues(fine, refined, T_coarse, coarse_fitness, T_local, v) -> dict[str, float]:
