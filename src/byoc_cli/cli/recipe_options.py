@@ -105,7 +105,7 @@ def _options() -> dict[str, Callable]:
             default=None,
             help="Exit 3 when the confidence, the calibrated probability that T is right, is "
             "below this (the default keeps 95 % of the right results of the development pairs, "
-            f"docs/registering.md; 0 accepts every result) {_default('gate.min_confidence')}.",
+            f"docs/confidence.md; 0 accepts every result) {_default('gate.min_confidence')}.",
         ),
         "fallback": click.option(
             "--fallback",
@@ -113,7 +113,7 @@ def _options() -> dict[str, Callable]:
             default=None,
             help="With byoc features: when the confidence is below --min-confidence, register "
             "the pair again with FPFH features (same scale, same refinement) and keep the more "
-            "confident result; the report says which ran (docs/registering.md). none: never. "
+            "confident result; the report says which ran (docs/confidence.md). none: never. "
             f"{_default('gate.fallback')}",
         ),
         "seed": click.option(

@@ -226,7 +226,7 @@ PRESETS: dict[str, RegistrationRecipe] = {
     # coarse-to-fine point-to-plane ICP on the full clouds that holds sliding directions
     # (benchmarks/estimators.py): randomized Procrustes registered a fifth of the development
     # fragments that RANSAC did with the same features; plain ICP slid along the planes of
-    # tum_fr3_cabinet. Below the gate, FPFH gives a second opinion (docs/registering.md).
+    # tum_fr3_cabinet. Below the gate, FPFH gives a second opinion (docs/confidence.md).
     "byoc": RegistrationRecipe(
         FeaturesRecipe("byoc"),
         MatchingRecipe(max_points=5000, correspondences=2500),
