@@ -15,23 +15,7 @@ from byoc_cli.cli.main import cli
 from byoc_cli.errors import InputError, RegistrationError, ShapeError
 from byoc_cli.io import format_transform, read_transform, write_ply
 from byoc_cli.pipeline import default_weights
-
-
-def _cube(seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    n = 4000
-    pts = rng.uniform(-1, 1, size=(n, 3))
-    axis = rng.integers(0, 3, size=n)
-    pts[np.arange(n), axis] = np.sign(pts[np.arange(n), axis])
-    return pts * np.array([1.5, 1.0, 0.8])
-
-
-def _moved(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    c, s = np.cos(0.2), np.sin(0.2)
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    T[:3, 3] = [0.2, -0.1, 0.05]
-    return pts @ T[:3, :3].T + T[:3, 3], T
+from tests.pipeline._clouds import cube, moved
 
 
 def test_importing_byoc_cli_imports_neither_torch_nor_open3d():
@@ -50,8 +34,8 @@ def test_api_names_are_exported():
 
 
 def test_register_arrays_gives_the_cli_transform(tmp_path):
-    src = _cube()
-    tgt, _ = _moved(src)
+    src = cube()
+    tgt, _ = moved(src)
     result = byoc_cli.register(src, tgt, seed=5, max_points=2000)
     assert isinstance(result, byoc_cli.Registration)
     assert result.T_tgt_src.shape == (4, 4) and result.T_tgt_src.dtype == np.float64
@@ -70,8 +54,8 @@ def test_register_arrays_gives_the_cli_transform(tmp_path):
 
 
 def test_workers_give_the_transform_of_one_thread_and_a_worker_may_register():
-    src = _cube()
-    tgt, _ = _moved(src)
+    src = cube()
+    tgt, _ = moved(src)
     settings = {"seed": 2, "max_points": 2000}
     one = byoc_cli.Registrar(threads=1).register(src, tgt, **settings)
     registrar = byoc_cli.Registrar(threads=2)
@@ -87,8 +71,8 @@ def test_workers_give_the_transform_of_one_thread_and_a_worker_may_register():
 
 
 def test_fpfh_registration_recovers_a_known_motion():
-    src = _cube(1)
-    tgt, T = _moved(src)
+    src = cube(1)
+    tgt, T = moved(src)
     result = byoc_cli.register(src, tgt, features="fpfh", seed=0)
     assert result.estimator == "ransac" and result.refine == "none"
     assert np.abs(result.T_tgt_src - T).max() < 0.05
@@ -96,8 +80,8 @@ def test_fpfh_registration_recovers_a_known_motion():
 
 
 def test_scale_keeps_the_input_units():
-    src_mm = _cube(1) * 1000
-    tgt_mm, T = _moved(_cube(1))
+    src_mm = cube(1) * 1000
+    tgt_mm, T = moved(cube(1))
     tgt_mm = tgt_mm * 1000
     with pytest.raises(InputError, match="millimetres"):  # a fixed voxel in metres
         byoc_cli.register(src_mm, tgt_mm, features="fpfh", voxel_size=None)
@@ -110,24 +94,24 @@ def test_scale_keeps_the_input_units():
 
 def test_extract_features_and_registrar_reuse():
     registrar = byoc_cli.Registrar()
-    feats = registrar.extract(_cube())
+    feats = registrar.extract(cube())
     assert isinstance(feats, byoc_cli.Features)
     m = feats.points.shape[0]
     assert feats.feats.shape[0] == m and feats.feats.dtype == np.float32
     assert np.allclose(np.linalg.norm(feats.feats, axis=1), 1.0, atol=1e-5)
-    assert np.array_equal(_cube()[feats.point_index], feats.points)
-    assert feats.voxel_size == registrar.choose_voxel(_cube()).voxel_size and feats.scale == 1.0
-    same = byoc_cli.extract_features(_cube(), weights=byoc_cli.load_weights())
+    assert np.array_equal(cube()[feats.point_index], feats.points)
+    assert feats.voxel_size == registrar.choose_voxel(cube()).voxel_size and feats.scale == 1.0
+    same = byoc_cli.extract_features(cube(), weights=byoc_cli.load_weights())
     assert np.array_equal(same.feats, feats.feats)
-    other = byoc_cli.Registrar("fpfh").extract(_cube())
+    other = byoc_cli.Registrar("fpfh").extract(cube())
     with pytest.raises(ValueError, match="same features"):
         registrar.match(feats, other)
     # extracted one at a time, two clouds may choose different auto voxels: match extracts
     # both again at the pair's voxel
-    apart = registrar.extract(_cube(1)[::3])
+    apart = registrar.extract(cube(1)[::3])
     assert apart.voxel_size != feats.voxel_size
     result = registrar.match(feats, apart)
-    assert result.voxel_size == registrar.choose_voxel(_cube(), _cube(1)[::3]).voxel_size
+    assert result.voxel_size == registrar.choose_voxel(cube(), cube(1)[::3]).voxel_size
 
 
 @pytest.mark.parametrize(
