@@ -12,7 +12,10 @@ laspy is imported lazily (``pip install 'laspy[lazrs]'``); a missing laspy or la
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +34,31 @@ _CHUNK_POINTS = 1 << 20
 #: the range of LAS's int32 coordinates
 _INT32 = (np.iinfo(np.int32).min, np.iinfo(np.int32).max)
 _INSTALL = "pip install 'laspy[lazrs]'"
+
+
+class _DropLogRecords(logging.Filter):
+    """laspy and lazrs log an error before they raise it: the exception says it once."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return False
+
+
+_QUIET = _DropLogRecords()
+
+
+@contextlib.contextmanager
+def _quiet_laspy() -> Iterator[None]:
+    """laspy's log records (of its modules' loggers: a filter does not reach a child's records)
+    dropped while a file is read or written here."""
+    names = [n for n in list(logging.root.manager.loggerDict) if n.split(".")[0] == "laspy"]
+    loggers = [logging.getLogger(name) for name in names]
+    for logger in loggers:
+        logger.addFilter(_QUIET)
+    try:
+        yield
+    finally:
+        for logger in loggers:
+            logger.removeFilter(_QUIET)
 
 
 def _laspy(path: object) -> Any:
@@ -94,7 +122,7 @@ def read_las_points(path: str | os.PathLike[str]) -> np.ndarray:
     path = Path(path)
     laspy = _laspy(path)
     header_read = False
-    with open_input(path, "cloud") as f:
+    with open_input(path, "cloud") as f, _quiet_laspy():
         try:
             with laspy.open(f, closefd=False) as reader:
                 header = reader.header
@@ -175,7 +203,7 @@ def write_las_like(
     source = Path(source)
     laspy = _laspy(source)
     points = np.asarray(points, dtype=np.float64)
-    with open_input(source, "cloud") as f:
+    with open_input(source, "cloud") as f, _quiet_laspy():
         try:
             las = laspy.read(f, closefd=False)
         except MemoryError:
@@ -190,7 +218,7 @@ def write_las_like(
     scales = np.asarray(las.header.scales, dtype=np.float64)
     las.header.offsets = _offsets_for(points, scales, np.asarray(las.header.offsets, np.float64))
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    with atomic_write(path, "wb") as out, write_errors(path):
+    with atomic_write(path, "wb") as out, write_errors(path), _quiet_laspy():
         try:
             las.write(out, do_compress=_is_laz(Path(path)))
         except OSError:
