@@ -35,6 +35,7 @@ from byoc_cli.cli.options import (
     resolve_device,
     verbosity_options,
 )
+from byoc_cli.cli.pair_files import BatchQc, batch_qc_option, check_qc_dir
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
     cloud_factors,
@@ -114,6 +115,7 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     help="Clouds whose features are kept in memory for later pairs (least recently used "
     "dropped first).",
 )
+@batch_qc_option
 @recipe_options(*PAIRWISE)
 @input_options
 @device_option
@@ -126,6 +128,7 @@ def register_batch(
     shard: tuple[int, int] | None,
     overwrite: bool,
     cache_size: int,
+    qc_dir: Path | None,
     **options: Any,
 ) -> None:
     """Register every pair of PAIRS, a text file of 'source target [output]' lines
@@ -166,6 +169,7 @@ def register_batch(
     check_depth_inputs(
         [p for entry, _ in planned for p in (entry.source, entry.target)], intrinsics
     )
+    check_qc_dir(qc_dir)
     if summary is None:
         name = "summary.jsonl" if shard is None else f"summary.shard-{shard[0]}-of-{shard[1]}.jsonl"
         summary = out_dir / name
@@ -209,9 +213,13 @@ def register_batch(
                 {"min_confidence": recipe.gate.min_confidence, "device": device},
                 inputs,
             )
+            load = {"intrinsics": intrinsics, "depth_scale": options["depth_scale"]}
+            qc = None if qc_dir is None else BatchQc(qc_dir, inputs, load)
             with _Progress(len(todo)) as progress:
                 for (entry, output), done in zip(todo, run.in_order(todo), strict=True):
                     record = run.finish(entry, output, done)
+                    if qc is not None and record["status"] == LOW_CONFIDENCE:
+                        record["qc"] = qc.write(entry.line, output, record)
                     counts[record["status"]] += 1
                     lines.write(record)
                     if record["status"] == LOW_CONFIDENCE:
