@@ -107,6 +107,49 @@ def test_a_bad_file_is_one_phrase_naming_it(utm_las, tmp_path, case, phrase):
     assert "\n" not in str(info.value)
 
 
+def _corrupted(laz: Path, case: str) -> bytes:
+    """``laz``'s bytes with one field of its header, LASzip record or chunk table made huge."""
+    import struct
+
+    data = bytearray(laz.read_bytes())
+    offset = struct.unpack("<I", data[96:100])[0]
+    if case == "records":  # the number of VLRs
+        data[100:104] = struct.pack("<I", 3_776_826_671)
+    elif case == "chunk size":  # the LASzip record's chunk size (50,000 as written)
+        at = data.find(struct.pack("<I", 50_000), 0, offset)
+        data[at : at + 4] = struct.pack("<I", 0x7FFFFFFF)
+    elif case == "chunk count":  # the number of chunks in the chunk table
+        table = struct.unpack("<q", data[offset : offset + 8])[0]
+        data[table + 4 : table + 8] = struct.pack("<I", 1_863_783_250)
+    elif case == "chunk table offset":  # bytes inserted before the table: it points elsewhere
+        data[offset + 20 : offset + 20] = bytes(range(14))
+    return bytes(data)
+
+
+@pytest.mark.parametrize("case", ["records", "chunk size", "chunk count", "chunk table offset"])
+def test_a_corrupt_count_is_refused_before_laspy_or_lazrs_allocates_for_it(utm_las, tmp_path, case):
+    # lazrs sized its buffers by these fields and aborted the process (allocations of 30 to
+    # 49 GB), or laspy looped over 3.8e9 records: read in a child under a 2 GB bound
+    _, laz, _ = utm_las
+    bad = tmp_path / "bad.laz"
+    bad.write_bytes(_corrupted(laz, case))
+    code = (
+        "import sys\n"
+        "from byoc_cli.errors import InputError\n"
+        "from byoc_cli.io import read_point_cloud\n"
+        "try:\n    read_point_cloud(sys.argv[1])\n"
+        "except InputError as e:\n    print(e.problem)\n"
+    )
+    run = subprocess.run(
+        ["bash", "-c", 'ulimit -v 2000000; exec "$0" -c "$1" "$2"', sys.executable, code, bad],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 0, run.stderr[-500:]
+    assert run.stdout.startswith(("corrupt LAS header", "truncated or corrupt LAZ point data"))
+
+
 def test_missing_laspy_or_lazrs_is_an_install_hint(utm_las, monkeypatch):
     las, laz, points = utm_las
     # a fresh interpreter where lazrs cannot be imported, as on an install without it

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
+import struct
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -34,6 +36,10 @@ _CHUNK_POINTS = 1 << 20
 #: the range of LAS's int32 coordinates
 _INT32 = (np.iinfo(np.int32).min, np.iinfo(np.int32).max)
 _INSTALL = "pip install 'laspy[lazrs]'"
+#: the most points a LAZ chunk may hold (LASzip writes 50,000): lazrs allocates a chunk's
+#: points at once, and a corrupt chunk size aborts the process on an allocation of many GB
+MAX_CHUNK_POINTS = 5_000_000
+_VARIABLE_CHUNKS = 0xFFFFFFFF
 
 
 class _DropLogRecords(logging.Filter):
@@ -88,6 +94,46 @@ def _problem(exc: BaseException, path: Path, header_read: bool) -> str:
     return f"not a {kind} file ({text})"
 
 
+class _Bounded:
+    """A file whose ``read(n)`` never asks for more than is left of it: laspy reads a
+    record's length from the file and allocates it before reading (a corrupt length of
+    2**60 bytes is a MemoryError, or gigabytes of memory taken)."""
+
+    def __init__(self, f: Any) -> None:
+        self._f = f
+        self._size = os.fstat(f.fileno()).st_size
+
+    def read(self, n: int | None = -1) -> bytes:
+        left = max(self._size - self._f.tell(), 0)
+        return self._f.read(left if n is None or n < 0 or n > left else n)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._f, name)
+
+
+def _check_public_header(f: Any, path: Path) -> None:
+    """The counts and offsets of a LAS public header that laspy loops over or seeks to must
+    fit the file before laspy reads it (a corrupt count of 4e9 records reads for hours).
+
+    Raises:
+        InputError: naming the file and the field that does not fit.
+    """
+    size = os.fstat(f.fileno()).st_size
+    head = f.read(253)
+    f.seek(0)
+    if len(head) < 227 or head[:4] != b"LASF":
+        raise InputError(path, "not a LAS file (no LASF header)")
+    header_size, offset, vlrs = struct.unpack("<HII", head[94:104])
+    if not header_size <= offset <= size:
+        raise InputError(path, f"corrupt LAS header (point data at byte {offset} of {size})")
+    if vlrs * 54 > offset - header_size:  # a VLR's own header is 54 bytes
+        raise InputError(path, f"corrupt LAS header ({vlrs} records before byte {offset})")
+    if head[24:26] >= bytes((1, 4)) and len(head) >= 247:
+        start, evlrs = struct.unpack("<QI", head[235:247])
+        if evlrs and (start > size or evlrs * 60 > size - start):  # 60: an EVLR's header
+            raise InputError(path, f"corrupt LAS header ({evlrs} extended records at {start})")
+
+
 def _check_data_size(f: Any, header: Any, path: Path) -> None:
     """An uncompressed file must hold the point records its header counts."""
     if header.are_points_compressed:
@@ -100,6 +146,75 @@ def _check_data_size(f: Any, header: Any, path: Path) -> None:
             path,
             f"truncated LAS file (header says {header.point_count} points, the data holds {found})",
         )
+
+
+def _bad_laz(path: Path, what: str) -> InputError:
+    """The error of a LAZ file whose compressed points cannot be decoded, and why."""
+    return InputError(path, f"truncated or corrupt LAZ point data ({what})")
+
+
+def _check_chunks(f: Any, header: Any, path: Path) -> None:
+    """A LAZ file's chunk size (its LASzip record) and chunk table must agree with the file
+    and the header before lazrs decodes it: lazrs sizes its buffers by them and a corrupt
+    value aborts the whole process on an allocation of tens of GB, which no ``except`` can
+    catch. Leaves ``f`` where it was.
+
+    Raises:
+        InputError: naming the file and what does not agree.
+    """
+    if not header.are_points_compressed:
+        return
+    import lazrs
+
+    record = next((v for v in header.vlrs if v.user_id == "laszip encoded"), None)
+    if record is None:
+        raise _bad_laz(path, "no LASzip record")
+    position = f.tell()
+    try:
+        vlr = lazrs.LazVlr(record.record_data)
+        chunk_size, count = int(vlr.chunk_size()), int(header.point_count)
+        if chunk_size != _VARIABLE_CHUNKS and not 1 <= chunk_size <= MAX_CHUNK_POINTS:
+            raise _bad_laz(path, f"chunks of {chunk_size} points")
+        table = _chunk_table(f, header, vlr, path)
+        points = [n for n, _ in table]
+        if chunk_size != _VARIABLE_CHUNKS:
+            want = math.ceil(count / chunk_size)
+            points = [min(chunk_size, count - k * chunk_size) for k in range(len(table))]
+            if len(table) != want:
+                raise _bad_laz(path, f"chunk table: {len(table)} chunks for {count} points")
+        if any(n < 1 or n > MAX_CHUNK_POINTS for n in points) or sum(points) != count:
+            raise _bad_laz(path, f"chunk table: its chunks do not hold {count} points")
+    except (lazrs.LazrsError, ValueError, struct.error) as exc:
+        raise _bad_laz(path, f"chunk table: {exc}") from exc
+    finally:
+        f.seek(position)
+
+
+def _chunk_table(f: Any, header: Any, vlr: Any, path: Path) -> list[tuple[int, int]]:
+    """``[(points, bytes)]`` of each chunk of a LAZ file (``vlr``: its ``lazrs.LazVlr``),
+    read by lazrs once the table's offset and chunk count are checked against the file."""
+    import lazrs
+
+    size = os.fstat(f.fileno()).st_size
+    start = int(header.offset_to_point_data)
+    f.seek(start)
+    offset = struct.unpack("<q", f.read(8))[0]
+    if offset == -1:  # a LAZ written to a stream: the offset is in the last 8 bytes
+        f.seek(size - 8)
+        offset = struct.unpack("<q", f.read(8))[0]
+    if not start + 8 <= offset <= size - 8:
+        raise _bad_laz(path, f"chunk table: at byte {offset} of {size}")
+    f.seek(offset)
+    version, chunks = struct.unpack("<II", f.read(8))
+    # every chunk starts with one point stored raw: at least a point record's bytes each
+    most = (offset - start - 8) // max(int(header.point_format.size), 1)
+    if version != 0 or chunks > most:
+        raise _bad_laz(path, f"chunk table: {chunks} chunks in {size} bytes")
+    f.seek(start)
+    table = [(int(n), int(b)) for n, b in lazrs.read_chunk_table(f, vlr)]
+    if any(b < 1 for _, b in table) or sum(b for _, b in table) > offset - start - 8:
+        raise _bad_laz(path, "chunk table: its chunks do not fit the file")
+    return table
 
 
 def read_las_points(path: str | os.PathLike[str]) -> np.ndarray:
@@ -124,7 +239,8 @@ def read_las_points(path: str | os.PathLike[str]) -> np.ndarray:
     header_read = False
     with open_input(path, "cloud") as f, _quiet_laspy():
         try:
-            with laspy.open(f, closefd=False) as reader:
+            _check_public_header(f, path)
+            with laspy.open(_Bounded(f), closefd=False) as reader:
                 header = reader.header
                 header_read = True
                 count = int(header.point_count)
@@ -132,6 +248,7 @@ def read_las_points(path: str | os.PathLike[str]) -> np.ndarray:
                     raise InputError(path, "empty point cloud (0 points)")
                 check_point_count(count, path)
                 _check_data_size(f, header, path)
+                _check_chunks(f, header, path)
                 out = np.empty((count, 3), dtype=np.float64)
                 done = 0
                 for chunk in reader.chunk_iterator(_CHUNK_POINTS):
@@ -144,6 +261,10 @@ def read_las_points(path: str | os.PathLike[str]) -> np.ndarray:
         except MemoryError:
             raise
         except Exception as exc:  # laspy, lazrs and numpy raise many kinds on a bad file
+            raise InputError(path, _problem(exc, path, header_read)) from exc
+        except BaseException as exc:  # lazrs's Rust panics come as a BaseException
+            if type(exc).__name__ != "PanicException":
+                raise
             raise InputError(path, _problem(exc, path, header_read)) from exc
     if done < count:
         raise InputError(
