@@ -35,8 +35,8 @@ from byoc_cli.pipeline.confidence import DEFAULT_MIN_CONFIDENCE
 
 #: feature types
 FEATURE_KINDS = ("byoc", "fpfh")
-#: robust estimators
-ESTIMATORS = ("procrustes", "ransac")
+#: robust estimators (``sc2``: second-order spatial compatibility, fitting/compatibility.py)
+ESTIMATORS = ("procrustes", "ransac", "sc2")
 #: refinements after the robust fit
 REFINEMENTS = ("none", "multiscale")
 #: what runs below the gate
@@ -88,8 +88,8 @@ class FittingRecipe:
     """The robust fit.
 
     Attributes:
-        estimator: ``"ransac"`` or ``"procrustes"`` (randomized weighted Procrustes, the
-            paper's section 3.1).
+        estimator: ``"ransac"``, ``"procrustes"`` (randomized weighted Procrustes, the
+            paper's section 3.1) or ``"sc2"`` (second-order spatial compatibility).
         inlier_factor: inlier threshold as a multiple of the voxel (RANSAC's threshold, and
             that of the reported inliers and overlap).
         ransac_iterations, ransac_confidence: RANSAC's limits.

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import torch
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.fitting import randomized_procrustes, ransac
+from byoc_cli.fitting import randomized_procrustes, ransac, spatial_compatibility
 from byoc_cli.geometry import apply_transform
 from byoc_cli.geometry.voxel import near_occupied
 from byoc_cli.matching import ratio_test_correspondences
@@ -50,7 +50,8 @@ class RegisterConfig:
         num_correspondences: top k ratio-test matches kept per direction (2k in all).
         max_points: size of the seeded random subset of kept points per cloud that enters
             matching (0 = all).
-        estimator: ``"procrustes"`` (randomized Procrustes, the paper's) or ``"ransac"``.
+        estimator: ``"procrustes"`` (randomized Procrustes, the paper's), ``"ransac"`` or
+            ``"sc2"`` (second-order spatial compatibility).
         num_subsets, subset_size: randomized Procrustes' candidates and their size.
         inlier_factor: inlier threshold as a multiple of the voxel size (RANSAC's threshold,
             and the threshold of the reported inliers and overlap).
@@ -463,6 +464,8 @@ def _fit(
             subset_size=config.subset_size,
             generator=generator,
         )
+    if config.estimator == "sc2":
+        return spatial_compatibility(p, q, threshold, weight=w, generator=generator)
     return ransac(
         p,
         q,
