@@ -25,9 +25,11 @@ On ``K`` correspondences ``p, q (K, 3)`` (one pair of clouds; no batch):
    highest ``SC2`` with the seed, then among them the ``k2`` of highest second-order
    compatibility with the seed inside that set (SC²-PCR's two-stage sampling); a weighted
    Procrustes on those ``k2`` (:func:`~byoc_cli.fitting.procrustes.weighted_procrustes`)
-   weighted by the leading eigenvector of their soft compatibility
-   ``max(0, 1 - d^2 / sigma^2)`` (``d`` the length difference), members not compatible with the
-   seed weighted 0;
+   weighted by the leading eigenvector of their soft second-order compatibility ``C * (C @ C)``,
+   ``C = max(0, 1 - d^2 / sigma^2)`` (``d`` the length difference), members not compatible
+   with the seed weighted 0 and those below :data:`WEIGHT_FLOOR` of the set's largest weight too
+   (an outlier that agrees with the seed but with few of the others gets a small weight, and a
+   small weight on a far point still tilts the fit);
 6. **selection**: every candidate refitted once on its inliers among all ``K``
    correspondences (``r_k = |R p_k + t - q_k| < inlier_threshold``; the consensus set of a seed
    can hold an outlier compatible with it, which tilts the fit), then the one with the highest
@@ -35,10 +37,13 @@ On ``K`` correspondences ``p, q (K, 3)`` (one pair of clouds; no batch):
 7. **refit** on its inliers (``r_k < inlier_threshold``), as :func:`~byoc_cli.fitting.ransac`
    does (:func:`~byoc_cli.fitting.ransac.refit_on_inliers`).
 
-Memory: ``H`` and ``SC2`` are float32 ``M x M`` (``8 M^2`` bytes: 32 MB at the default cap of
-2000, 200 MB at 5000); distances are computed in row chunks of :data:`CHUNK_ELEMENTS`, and
-the candidates are scored in chunks of :data:`SCORE_ELEMENTS` residuals. Time: the product
-``H @ H`` is ``2 M^3`` flops (0.2 s at ``M = 2000`` on one core).
+Memory: ``H`` and ``SC2`` are float32 ``M x M`` and the source neighbourhoods bool ``M x M``
+(``9 M^2`` bytes: 9 MB at the default cap of 1000, 36 MB at 2000, 225 MB at 5000); distances
+are computed in row chunks of :data:`CHUNK_ELEMENTS`, and the candidates are scored in chunks
+of :data:`SCORE_ELEMENTS` residuals. Time: the product ``H @ H`` is ``2 M^3`` flops (0.03 s at
+``M = 1000``, 0.2 s at 2000, 3 s or more at 5000 on one core). The cap of 1000 is measured:
+on the development pairs of docs/low-overlap.md the fit took 0.1-0.2 s a pair against 0.6-0.8 s
+at 2000 and registered the same pairs within one (benchmarks/low_overlap_estimators.py).
 
 No random draw: the same input gives the same bits. ``generator`` is accepted (and not drawn
 from) so that every estimator takes the same arguments.
@@ -65,6 +70,9 @@ from byoc_cli.fitting.ransac import refit_on_inliers
 CHUNK_ELEMENTS = 2**22
 #: Residuals ``candidates x K`` scored at once (their ``(c, K, 3)`` temporaries: 12 MB each).
 SCORE_ELEMENTS = 2**19
+#: Consensus members weighted below this share of their set's largest weight are left out
+#: of its fit (weight 0).
+WEIGHT_FLOOR = 0.5
 #: Power iterations for the leading eigenvectors (global and per consensus set).
 POWER_ITERATIONS = 30
 
@@ -87,7 +95,7 @@ class CompatibilityTuning:
         refit_iterations: Procrustes refits on the inliers of the chosen candidate (>= 0).
     """
 
-    max_correspondences: int = 2000
+    max_correspondences: int = 1000
     compatibility_factor: float = 1.0
     seed_ratio: float = 0.1
     nms_factor: float = 1.0
@@ -260,8 +268,8 @@ def _consensus(H, SC2, seeds, p, q, sigma: float, k1: int, k2: int):
 
     Returns:
         ``members (S, k2)`` int64 (the seed first), ``weight (S, k2)`` float64: the leading
-        eigenvector of the members' soft compatibility, 0 for members incompatible with the
-        seed.
+        eigenvector of the members' soft second-order compatibility, 0 for members incompatible
+        with the seed or below :data:`WEIGHT_FLOOR` of the largest.
     """
     num = H.shape[0]
     k1, k2 = min(k1, num), min(k2, num)
@@ -276,10 +284,13 @@ def _consensus(H, SC2, seeds, p, q, sigma: float, k1: int, k2: int):
     local_sc2[:, 0] = math.inf
     pick = torch.sort(local_sc2, dim=1, descending=True, stable=True).indices[:, :k2]
     members = near.gather(1, pick)  # (S, k2)
-    # local spectral weights on the soft compatibility of the members
+    # local spectral weights on the soft second-order compatibility of the members
     diff = torch.cdist(p[members], p[members]) - torch.cdist(q[members], q[members])
     soft = (1.0 - diff.square() / sigma**2).clamp_min(0.0)
-    weight = _leading_eigenvector(soft) * H[seeds[:, None], members].to(torch.float64)
+    soft_sc2 = (soft @ soft).mul_(soft)
+    weight = _leading_eigenvector(soft_sc2) * H[seeds[:, None], members].to(torch.float64)
+    # a far outlier with a tenth of an inlier's weight still tilts a least-squares fit
+    weight[weight < WEIGHT_FLOOR * weight.amax(dim=1, keepdim=True)] = 0.0
     return members, weight
 
 
