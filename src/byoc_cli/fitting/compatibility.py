@@ -42,7 +42,7 @@ Memory: ``H`` and ``SC2`` are float32 ``M x M`` and the source neighbourhoods bo
 are computed in row chunks of :data:`CHUNK_ELEMENTS`, and the candidates are scored in chunks
 of :data:`SCORE_ELEMENTS` residuals. Time: the product ``H @ H`` is ``2 M^3`` flops (0.03 s at
 ``M = 1000``, 0.2 s at 2000, 3 s or more at 5000 on one core). The cap of 1000 is measured:
-on the development pairs of docs/low-overlap.md the fit took 0.1-0.2 s a pair against 0.6-0.8 s
+on the development pairs of docs/low-overlap.md the fit took 0.1-0.2 s a pair against 0.45-0.65 s
 at 2000 and registered the same pairs within one (benchmarks/low_overlap_estimators.py).
 
 No random draw: the same input gives the same bits. ``generator`` is accepted (and not drawn
