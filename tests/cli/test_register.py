@@ -176,6 +176,19 @@ def test_ransac_estimator_and_multiscale_recover_synthetic(runner, tmp_path):
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.05
 
 
+def test_sc2_estimator_recovers_synthetic_and_is_reported(runner, tmp_path):
+    src, tgt, T_gt = _synthetic_pair(tmp_path)
+    out = tmp_path / "T.txt"
+    report = tmp_path / "r.json"
+    args = ["register", str(src), str(tgt), "--features", "fpfh", "--voxel-size", "0.05"]
+    res = runner.invoke(cli, [*args, "--estimator", "sc2", "-o", str(out), "--json", str(report)])
+    assert res.exit_code == 0, res.output
+    T = read_transform(out)
+    assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 2.0
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.05
+    assert json.loads(report.read_text())["recipe"]["fitting"]["estimator"] == "sc2"
+
+
 def test_confidence_gate_exit_3(runner, random_weights, tmp_path):
     src, tgt, _ = _synthetic_pair(tmp_path)
     out = tmp_path / "T.txt"

@@ -36,8 +36,8 @@ batch_qc_option = path_option(
     file=False,
     default=None,
     help="Write the quality files of `byoc register --qc` for each pair registered below "
-    "--min-confidence (not for pairs that passed, failed or were skipped) into this folder "
-    "(created if missing), named after the pair's T file: <T-stem>_qc.png and "
+    "the gate (`--min-confidence`; not for pairs that passed, failed or were skipped) into "
+    "this folder (created if missing), named after the pair's T file: <T-stem>_qc.png and "
     "<T-stem>_residual.ply.",
 )
 

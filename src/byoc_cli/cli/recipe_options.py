@@ -73,8 +73,9 @@ def _options() -> dict[str, Callable]:
             "--estimator",
             type=click.Choice(["auto", *recipes.ESTIMATORS]),
             default=None,
-            help="RANSAC or randomized weighted Procrustes (the paper's); auto: the "
-            f"recipe's. {_default('fitting.estimator')}",
+            help="RANSAC, randomized weighted Procrustes (the paper's) or sc2 (second-order "
+            "spatial compatibility, for few inliers: docs/low-overlap.md); auto: the recipe's. "
+            f"{_default('fitting.estimator')}",
         ),
         "refine": click.option(
             "--refine",

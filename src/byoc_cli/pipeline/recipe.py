@@ -113,8 +113,8 @@ class FittingRecipe:
     """The robust fit.
 
     Attributes:
-        estimator: ``"ransac"`` or ``"procrustes"`` (randomized weighted Procrustes, the
-            paper's section 3.1).
+        estimator: ``"ransac"``, ``"procrustes"`` (randomized weighted Procrustes, the
+            paper's section 3.1) or ``"sc2"`` (second-order spatial compatibility).
         inlier_factor: inlier threshold as a multiple of the voxel (RANSAC's threshold, and
             that of the reported inliers and overlap).
         ransac_iterations, ransac_confidence: RANSAC's limits.
