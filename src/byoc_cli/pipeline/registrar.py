@@ -157,7 +157,8 @@ class Registrar(Featurizer):
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale; with an
                 auto voxel, clouds extracted one at a time are extracted again at the pair's).
-            estimator: ``"ransac"`` or ``"procrustes"``; None (every argument): the recipe's.
+            estimator: ``"ransac"``, ``"procrustes"`` or ``"sc2"``; None (every argument): the
+                recipe's.
             refine: ``"none"`` or ``"multiscale"`` (runs on ``Features.cloud`` where both
                 have one).
             max_points: seeded random subset per cloud that enters matching (0 = all).
