@@ -179,11 +179,18 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
         f"{format_length(result.inlier_threshold, unit)}, voxel {voxel}, {seconds:.1f} s"
     )
-    if result.fallback and result.fallback["used"]:
+    fallback = result.fallback
+    if fallback and fallback["used"] and fallback["features"] == "fpfh":
         line += (
             f" (FPFH features: the learned ones reached confidence "
-            f"{result.fallback['learned_confidence']:.3f})"
+            f"{fallback['learned_confidence']:.3f})"
         )
+    elif result.features_choice and result.features_choice["first"] == "fpfh":
+        first = "learned features" if result.features == "byoc" else "FPFH features"
+        line += f" ({first}; smooth surfaces: FPFH went first"
+        if fallback:
+            line += f", confidence {fallback['first_confidence'] or 0.0:.3f}"
+        line += ")"
     return line
 
 

@@ -47,17 +47,14 @@ class Fallback:
         if src.cloud is None or tgt.cloud is None:
             return first
         start = time.perf_counter()
-        fpfh = self.registrar()
         try:
             scales = None
-            if fpfh.auto_voxel:  # the scales the learned choice read
+            if self.registrar().auto_voxel:  # the scales the learned choice read
                 scales = [
                     learned.cloud_scale(f.cloud, label)
                     for f, label in ((src, "source"), (tgt, "target"))
                 ]
-            second = register_clouds(
-                fpfh, (src.cloud, tgt.cloud), scales, refine="multiscale", seed=seed
-            )
+            second = self.register((src.cloud, tgt.cloud), scales, seed)
         except RegistrationError:
             second = None
         seconds = time.perf_counter() - start
@@ -75,6 +72,20 @@ class Fallback:
         T = second.T_tgt_src.copy()
         T[:3, 3] /= src.scale
         return second._replace(T_tgt_src=T, timings=timings, fallback=note)
+
+    def register(
+        self, clouds: tuple[np.ndarray, np.ndarray], scales: list, seed: int
+    ) -> Registration:
+        """FPFH's registration of ``clouds`` (``(N, 3)`` in metres), refined by the multiscale
+        ICP, from the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` that the learned
+        registrar measured (read only with an auto voxel; None otherwise); T in metres.
+
+        Raises:
+            RegistrationError: FPFH cannot register them.
+        """
+        fpfh = self.registrar()
+        scales = scales if fpfh.auto_voxel else None
+        return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed)
 
 
 def register_clouds(

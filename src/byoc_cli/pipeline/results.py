@@ -75,6 +75,11 @@ class Registration(NamedTuple):
         recipe: the recipe that ran
             (:meth:`byoc_cli.pipeline.recipe.RegistrationRecipe.as_dict`; the fallback's
             when its result is kept).
+        features_choice: with learned features, an auto voxel and the FPFH fallback, which
+            features the pair started with and why
+            (:meth:`byoc_cli.pipeline.feature_choice.FeaturesChoice.as_dict`); when FPFH went
+            first (a smooth pair), ``fallback`` says what the learned features reached
+            (``features: "byoc"``, ``first_confidence``: FPFH's); None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -100,3 +105,4 @@ class Registration(NamedTuple):
     cues: dict[str, float] | None = None
     fallback: dict | None = None
     recipe: dict | None = None
+    features_choice: dict | None = None
