@@ -25,7 +25,7 @@ def test_fpfh_goes_first_only_when_both_clouds_are_smooth():
     assert choose_features([0.8, 0.7]).first == "byoc"
     picked = choose_features([0.01, 0.02]).as_dict()
     assert picked["first"] == "fpfh" and picked["rough_share"] == [0.01, 0.02]
-    assert picked["smooth_share"] == SMOOTH_SHARE and "FPFH first" in picked["reason"]
+    assert picked["smooth_share"] == SMOOTH_SHARE and "FPFH features" in picked["reason"]
 
 
 def test_only_learned_features_with_an_auto_voxel_and_the_fpfh_fallback_choose():
@@ -55,7 +55,8 @@ class _Made:
     def __init__(self, fpfh):
         self.fpfh = fpfh
 
-    def fpfh_registration(self, clouds, scales, seed=None):
+    def fpfh_registration(self, clouds, scales, seed=None, restarts=True):
+        assert not restarts  # a smooth pair's FPFH refinement runs without them
         if self.fpfh is None:
             raise RegistrationError("no correspondences")
         return _registration(self.fpfh, "fpfh", tx=2.0)
@@ -95,6 +96,14 @@ def test_below_the_gate_the_learned_features_run_and_the_more_confident_is_kept(
     assert got.passed == (got.confidence >= 0.45)
 
 
+@pytest.mark.parametrize("fpfh", [0.9, 0.3])
+def test_without_a_second_opinion_fpfh_is_the_result_above_or_below_the_gate(fpfh):
+    got = smooth_first(_Made(fpfh), (None, None), [], None, choose_features([0.0, 0.0]), None)
+    assert got.features == "fpfh" and got.passed == (fpfh >= 0.45) and got.fallback is None
+    with pytest.raises(RegistrationError, match="no correspondences"):
+        smooth_first(_Made(None), (None, None), [], None, choose_features([0.0, 0.0]), None)
+
+
 def test_when_neither_registers_the_learned_features_error_is_raised():
     def fails():
         raise RegistrationError("only 2 correspondences")
@@ -120,8 +129,9 @@ def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
 
     smooth, other = _ellipsoid_scan(0), _ellipsoid_scan(1)
     got = byoc_cli.Registrar(device="cpu").register(smooth, other)
-    assert got.features_choice["first"] == "fpfh"
+    assert got.features_choice["first"] == "fpfh" and got.features == "fpfh"
     assert max(got.features_choice["rough_share"]) <= SMOOTH_SHARE
+    assert "restarts" not in got.timings and got.cues["restart_return"] == 1.0
     without = byoc_cli.Registrar(device="cpu", fallback=None).register(smooth, other)
     assert without.features_choice is None and without.features == "byoc"
 

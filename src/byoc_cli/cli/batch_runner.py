@@ -92,7 +92,12 @@ class PairRunner:
     def compute(self, entry) -> tuple[Any, float]:
         """``(registration or the exception, seconds)`` of one pair (a smooth pair starts with
         FPFH: :mod:`byoc_cli.pipeline.feature_choice`)."""
-        from byoc_cli.pipeline.feature_choice import applies, features_for, smooth_first
+        from byoc_cli.pipeline.feature_choice import (
+            LEARNED_SECOND_OPINION,
+            applies,
+            features_for,
+            smooth_first,
+        )
 
         started = time.perf_counter()
         timings: dict[str, float] = {}
@@ -119,9 +124,8 @@ class PairRunner:
 
             if picked is not None and picked.first == "fpfh":
                 scales = [cloud_src[2], cloud_tgt[2]]
-                result = smooth_first(
-                    self.registrar, clouds, scales, lambda: learned(False), picked, factor_tgt
-                )
+                second = (lambda: learned(False)) if LEARNED_SECOND_OPINION else None
+                result = smooth_first(self.registrar, clouds, scales, second, picked, factor_tgt)
                 if result.voxel_choice is None:  # the learned features' result
                     result = result._replace(voxel_choice=choice.as_dict())
                 result = result._replace(timings={**timings, **result.timings})

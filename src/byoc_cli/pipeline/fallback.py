@@ -25,17 +25,22 @@ class Fallback:
 
     def __init__(self, voxel_size: float | str) -> None:
         self.voxel_size = voxel_size
-        self._registrar = None
+        self._registrars: dict[bool, Any] = {}
         self._lock = threading.Lock()
 
-    def registrar(self):
-        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread)."""
+    def registrar(self, restarts: bool = True):
+        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread); ``restarts``
+        False: its refinement without restarts (:mod:`byoc_cli.pipeline.feature_choice`)."""
+        from byoc_cli.pipeline.recipe import preset
         from byoc_cli.pipeline.registrar import Registrar
 
         with self._lock:
-            if self._registrar is None:
-                self._registrar = Registrar("fpfh", voxel_size=self.voxel_size, threads=1)
-            return self._registrar
+            if restarts not in self._registrars:
+                recipe = preset("fpfh").changed(refinement__restarts=restarts)
+                self._registrars[restarts] = Registrar(
+                    "fpfh", voxel_size=self.voxel_size, threads=1, recipe=recipe
+                )
+            return self._registrars[restarts]
 
     def second_opinion(
         self, learned: Any, first: Registration, src: Features, tgt: Features, seed: int
@@ -74,16 +79,21 @@ class Fallback:
         return second._replace(T_tgt_src=T, timings=timings, fallback=note)
 
     def register(
-        self, clouds: tuple[np.ndarray, np.ndarray], scales: list, seed: int
+        self,
+        clouds: tuple[np.ndarray, np.ndarray],
+        scales: list,
+        seed: int,
+        restarts: bool = True,
     ) -> Registration:
         """FPFH's registration of ``clouds`` (``(N, 3)`` in metres), refined by the multiscale
         ICP, from the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` that the learned
-        registrar measured (read only with an auto voxel; None otherwise); T in metres.
+        registrar measured (read only with an auto voxel; None otherwise), with or without the
+        refinement's ``restarts``; T in metres.
 
         Raises:
             RegistrationError: FPFH cannot register them.
         """
-        fpfh = self.registrar()
+        fpfh = self.registrar(restarts)
         scales = scales if fpfh.auto_voxel else None
         return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed)
 

@@ -203,10 +203,11 @@ class Registrar(Featurizer):
             scan_lines=scan_lines(self, src, tgt),
         )
 
-    def fpfh_registration(self, clouds: tuple, scales: list, seed: int | None = None):
+    def fpfh_registration(self, clouds: tuple, scales: list, seed=None, restarts=True):
         """:meth:`Fallback.register <byoc_cli.pipeline.fallback.Fallback.register>` of
         ``clouds`` (seed None: the recipe's): FPFH's registration, T in metres."""
-        return self._fallback.register(clouds, scales, self.recipe.seed if seed is None else seed)
+        seed = self.recipe.seed if seed is None else seed
+        return self._fallback.register(clouds, scales, seed, restarts)
 
     def register(
         self,

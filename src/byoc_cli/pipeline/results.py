@@ -77,9 +77,10 @@ class Registration(NamedTuple):
             when its result is kept).
         features_choice: with learned features, an auto voxel and the FPFH fallback, which
             features the pair started with and why
-            (:meth:`byoc_cli.pipeline.feature_choice.FeaturesChoice.as_dict`); when FPFH went
-            first (a smooth pair), ``fallback`` says what the learned features reached
-            (``features: "byoc"``, ``first_confidence``: FPFH's); None otherwise.
+            (:meth:`byoc_cli.pipeline.feature_choice.FeaturesChoice.as_dict`): ``"fpfh"`` for a
+            smooth pair (when the learned features ran as its second opinion, ``fallback``
+            says what they reached: ``features: "byoc"``, ``first_confidence``: FPFH's);
+            None otherwise.
     """
 
     T_tgt_src: np.ndarray

@@ -8,7 +8,12 @@ from typing import Any
 
 import numpy as np
 
-from byoc_cli.pipeline.feature_choice import applies, features_for, smooth_first
+from byoc_cli.pipeline.feature_choice import (
+    LEARNED_SECOND_OPINION,
+    applies,
+    features_for,
+    smooth_first,
+)
 from byoc_cli.pipeline.memo import InPlace, all_done
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.threads import in_worker
@@ -28,9 +33,9 @@ def register_pair(
         load: ``intrinsics`` and ``depth_scale`` for depth-image files.
         settings: the keywords of ``Registrar.match``.
 
-    With learned features, an auto voxel and the FPFH fallback, a pair of smooth clouds
-    starts with FPFH instead (:mod:`byoc_cli.pipeline.feature_choice`): the learned features
-    are extracted and matched only when FPFH's confidence is below the gate.
+    With learned features, an auto voxel and the FPFH fallback, a pair of smooth clouds is
+    registered with FPFH instead (:mod:`byoc_cli.pipeline.feature_choice`): the learned
+    features are not extracted.
 
     Returns:
         the registration; its ``timings`` add ``load``, ``scale``, ``features_src``,
@@ -83,9 +88,8 @@ def register_pair(
     if picked is not None and picked.first == "fpfh":
         seed = settings.get("seed")
         clouds = (src_points, tgt_points)
-        result = smooth_first(
-            made, clouds, [src_scale, tgt_scale], lambda: learned(False), picked, scale, seed
-        )
+        second = (lambda: learned(False)) if LEARNED_SECOND_OPINION else None
+        result = smooth_first(made, clouds, [src_scale, tgt_scale], second, picked, scale, seed)
     else:
         result = learned()
         picked = None if picked is None else picked.as_dict()
