@@ -4,10 +4,14 @@ at a hand-set voxel, each in one process, as issue 33 measures them.
 Three steps:
 
 * ``make --out DIR``: simulated pairs of free-form objects (benchmarks/_scan_sim_shapes.py:
-  ``--shapes`` x ``--views`` x ``--angles`` x ``--seeds``, sizes 10, 20 and 30 cm in turn),
+  ``--shapes`` x ``--views`` x ``--angles`` x ``--seeds``, ``--sizes`` in turn (10, 20 and
+  30 cm), ``--noise`` of range (0.1 mm)),
   each ``DIR/<name>/{source.ply,target.ply,T_gt.txt,info.json}``, and ``DIR/pairs.txt``
   (``source target out/<name>.txt``). ``info.json``'s ``voxel`` is the hand-set voxel
   (size / 50).
+* ``make-tabletop --out DIR``: the same layout of the fused tabletop box of
+  benchmarks/scan_sim.py (``object_pair``, its table cut off) at ``--sizes`` x ``--angles``
+  (20 to 80 deg): a scanned object with edges, where the learned features go first.
 * ``run DIR``: ``--repeats`` times, interleaved: ``byoc register-batch DIR/pairs.txt
   --overwrite`` (plus ``--byoc-args``) and the Open3D loop (``o3d-loop``: every pair of the list
   through benchmarks/o3d_fpfh_ransac.py's pipeline at ``info.json``'s voxel, in one
@@ -25,7 +29,8 @@ Three steps:
 Right: rotation within 5 deg and translation within 10 % of the object's size (``info.json``).
 
 Usage: python benchmarks/objects.py make --out DIR [--shapes blob torus ...] [--views ...]
-           [--angles 30 60] [--seeds 0 1]
+           [--angles 30 60] [--seeds 0 1] [--sizes 0.1 0.2 0.3] [--noise 1e-4]
+       python benchmarks/objects.py make-tabletop --out DIR [--cache C]
        python benchmarks/objects.py run DIR [--repeats 3] [--baseline ../main/src]
            [--byoc-args "--fallback none"]
        python benchmarks/objects.py cues [objects=DIR street=DIR2 ...] [--no-reference]
@@ -82,7 +87,8 @@ def right(T: np.ndarray, folder: Path) -> tuple[bool, float, float]:
     T_gt = np.loadtxt(folder / "T_gt.txt")
     rot, _ = errors(T, T_gt)
     c = _centre(folder)
-    share = float(np.linalg.norm((T - T_gt)[:3, :3] @ c + (T - T_gt)[:3, 3])) / info["size"]
+    size = info.get("size", info.get("scene_size_m"))  # scan_sim.py's object pairs: the latter
+    share = float(np.linalg.norm((T - T_gt)[:3, :3] @ c + (T - T_gt)[:3, 3])) / size
     return rot < MAX_ROT_DEG and share < MAX_TRANS_SHARE, rot, share
 
 
@@ -106,15 +112,35 @@ def make(args: argparse.Namespace) -> None:
         for view in args.views:
             for angle in args.angles:
                 for seed in args.seeds:
-                    size = SIZES[k % len(SIZES)]
+                    size = args.sizes[k % len(args.sizes)]
                     k += 1
                     name = f"{kind}-{view}-{angle:g}-s{seed}"
-                    pair = shape_pair(kind, angle, size, view, seed=seed)
+                    pair = shape_pair(kind, angle, size, view, noise=args.noise, seed=seed)
                     info = {"kind": "shape", "shape": kind, "view": view, "angle_deg": angle,
                             "seed": seed, "size": size, "voxel": size / 50}  # fmt: skip
                     write_pair(args.out / name, pair, info)
                     lines.append(f"{name}/source.ply {name}/target.ply out/{name}.txt")
                     print(f"{name}: {len(pair[0])} + {len(pair[1])} points", file=sys.stderr)
+    (args.out / "pairs.txt").write_text("\n".join(lines) + "\n")
+    (args.out / "out").mkdir(exist_ok=True)
+
+
+def make_tabletop(args: argparse.Namespace) -> None:
+    """The fused tabletop box (`scan_sim.object_pair`, its table cut off) at each size and
+    angle: rays size / 400 apart, range noise size / 2000 (0.1 mm at 20 cm)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from _scan_sim_object import object_pair
+    from _scan_sim_write import write_pair
+
+    lines = []
+    for size in args.sizes:
+        for angle in args.angles:
+            name = f"obj-{size:g}m-{angle:g}deg"
+            pair = object_pair(angle, size * 2.5e-3, size, size * 5e-4, cache=args.cache)
+            info = {"kind": "object", "angle_deg": angle, "size": size, "voxel": size / 50}
+            write_pair(args.out / name, pair, info)
+            lines.append(f"{name}/source.ply {name}/target.ply out/{name}.txt")
+            print(f"{name}: {len(pair[0])} + {len(pair[1])} points", file=sys.stderr)
     (args.out / "pairs.txt").write_text("\n".join(lines) + "\n")
     (args.out / "out").mkdir(exist_ok=True)
 
@@ -263,14 +289,12 @@ def cues(args: argparse.Namespace) -> None:
         scales = [measure(torch.from_numpy(c), n) for c, n in ((src, "s"), (tgt, "t"))]
         voxel = choose_voxel(tuple(scales), 0.025).voxel_size
         rough = [rough_share(torch.from_numpy(c), voxel) for c in (src, tgt)]
-        groups.setdefault(group, []).append(max(rough))
+        groups.setdefault(group, []).extend(rough)
         fires = "FPFH first" if max(rough) <= SMOOTH_SHARE else ""
         print(f"{group:14s} {name:34s} rough {rough[0]:.3f} {rough[1]:.3f} {fires}")
-    print(
-        f"largest rough share of a pair's two clouds, per group (FPFH first at <= {SMOOTH_SHARE})"
-    )
+    print(f"rough share of the clouds, per group (FPFH first when both are <= {SMOOTH_SHARE})")
     for group, values in groups.items():
-        print(f"  {group:14s} {len(values):3d} pairs  {min(values):.3f} .. {max(values):.3f}")
+        print(f"  {group:14s} {len(values):3d} clouds  {min(values):.3f} .. {max(values):.3f}")
 
 
 def judge(args: argparse.Namespace) -> None:
@@ -301,6 +325,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--views", nargs="+", default=["turntable", "handheld"])
     p.add_argument("--angles", nargs="+", type=float, default=[30.0, 60.0])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    p.add_argument("--sizes", nargs="+", type=float, default=list(SIZES), help="m, in turn")
+    p.add_argument("--noise", type=float, default=1e-4, help="range noise, m (default 0.1 mm)")
+    p = sub.add_parser("make-tabletop")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--sizes", nargs="+", type=float, default=list(SIZES), help="m")
+    p.add_argument("--angles", nargs="+", type=float, default=[20.0, 40.0, 60.0, 80.0])
+    p.add_argument("--cache", type=Path, help="folder for the fused mesh (outside the repo)")
     p = sub.add_parser("o3d-loop")
     p.add_argument("pairs", type=Path)
     p.add_argument("--out-dir", type=Path, required=True)
@@ -317,7 +348,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.step == "run" and not (args.dir / "pairs.txt").is_file():
         parser.error(f"{args.dir}: no pairs.txt (make it with 'make --out {args.dir}')")
-    steps = {"make": make, "o3d-loop": o3d_loop, "run": run, "cues": cues, "judge": judge}
+    steps = {"make": make, "make-tabletop": make_tabletop, "o3d-loop": o3d_loop, "run": run}
+    steps.update(cues=cues, judge=judge)
     steps[args.step](args)
 
 

@@ -16,6 +16,7 @@ from byoc_cli.pipeline.feature_choice import (
     smooth_first,
 )
 from byoc_cli.pipeline.results import Registration
+from tests._smooth import smooth_scan
 
 
 def test_fpfh_goes_first_only_when_both_clouds_are_smooth():
@@ -112,22 +113,11 @@ def test_when_neither_registers_the_learned_features_error_is_raised():
         smooth_first(_Made(None), (None, None), [], fails, choose_features([0.0, 0.0]), None)
 
 
-def _ellipsoid_scan(seed: int, n: int = 40000) -> np.ndarray:
-    """One side of a smooth bumpy ellipsoid 20 cm long (the half facing +z), as a scanner
-    sees it: a smooth free-form object without edges."""
-    rng = np.random.default_rng(seed)
-    u = rng.standard_normal((4 * n, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    u = u[u[:, 2] > 0.1][:n]
-    r = 1 + 0.15 * u[:, 0] * u[:, 1] + 0.1 * u[:, 2] ** 2
-    return u * r[:, None] * np.array([0.1, 0.07, 0.05])
-
-
 @pytest.mark.slow
 def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
     import byoc_cli
 
-    smooth, other = _ellipsoid_scan(0), _ellipsoid_scan(1)
+    smooth, other = smooth_scan(0), smooth_scan(1)
     got = byoc_cli.Registrar(device="cpu").register(smooth, other)
     assert got.features_choice["first"] == "fpfh" and got.features == "fpfh"
     assert max(got.features_choice["rough_share"]) <= SMOOTH_SHARE

@@ -186,11 +186,12 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
             f"{fallback['learned_confidence']:.3f})"
         )
     elif result.features_choice and result.features_choice["first"] == "fpfh":
-        first = "learned features" if result.features == "byoc" else "FPFH features"
-        line += f" ({first}; smooth surfaces: FPFH went first"
-        if fallback:
-            line += f", confidence {fallback['first_confidence'] or 0.0:.3f}"
-        line += ")"
+        rough = " and ".join(f"{100 * r:.0f} %" for r in result.features_choice["rough_share"])
+        if result.features == "fpfh":
+            line += f" (FPFH features: smooth surfaces, {rough} rough)"
+        else:  # the learned features' second opinion was kept
+            first = fallback["first_confidence"] or 0.0
+            line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
     return line
 
 
