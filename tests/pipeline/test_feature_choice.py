@@ -10,6 +10,7 @@ import pytest
 
 from byoc_cli.errors import RegistrationError
 from byoc_cli.pipeline.feature_choice import (
+    SMOOTH_FPFH,
     SMOOTH_SHARE,
     applies,
     choose_features,
@@ -56,8 +57,8 @@ class _Made:
     def __init__(self, fpfh):
         self.fpfh = fpfh
 
-    def fpfh_registration(self, clouds, scales, seed=None, restarts=True):
-        assert not restarts  # a smooth pair's FPFH refinement runs without them
+    def fpfh_registration(self, clouds, scales, seed=None, changes=()):
+        assert changes == SMOOTH_FPFH
         if self.fpfh is None:
             raise RegistrationError("no correspondences")
         return _registration(self.fpfh, "fpfh", tx=2.0)
@@ -122,6 +123,7 @@ def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
     assert got.features_choice["first"] == "fpfh" and got.features == "fpfh"
     assert max(got.features_choice["rough_share"]) <= SMOOTH_SHARE
     assert "restarts" not in got.timings and got.cues["restart_return"] == 1.0
+    assert got.max_points == 3000 and got.recipe["refinement"]["restarts"] is False
     without = byoc_cli.Registrar(device="cpu", fallback=None).register(smooth, other)
     assert without.features_choice is None and without.features == "byoc"
 

@@ -25,22 +25,24 @@ class Fallback:
 
     def __init__(self, voxel_size: float | str) -> None:
         self.voxel_size = voxel_size
-        self._registrars: dict[bool, Any] = {}
+        self._registrars: dict[tuple, Any] = {}
         self._lock = threading.Lock()
 
-    def registrar(self, restarts: bool = True):
-        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread); ``restarts``
-        False: its refinement without restarts (:mod:`byoc_cli.pipeline.feature_choice`)."""
+    def registrar(self, changes: tuple[tuple[str, Any], ...] = ()):
+        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread) of the
+        ``fpfh`` preset, with ``changes`` (``(path, value)`` pairs of
+        :meth:`~byoc_cli.pipeline.recipe.RegistrationRecipe.changed`: a smooth pair's,
+        :data:`byoc_cli.pipeline.feature_choice.SMOOTH_FPFH`)."""
         from byoc_cli.pipeline.recipe import preset
         from byoc_cli.pipeline.registrar import Registrar
 
         with self._lock:
-            if restarts not in self._registrars:
-                recipe = preset("fpfh").changed(refinement__restarts=restarts)
-                self._registrars[restarts] = Registrar(
+            if changes not in self._registrars:
+                recipe = preset("fpfh").changed(**dict(changes))
+                self._registrars[changes] = Registrar(
                     "fpfh", voxel_size=self.voxel_size, threads=1, recipe=recipe
                 )
-            return self._registrars[restarts]
+            return self._registrars[changes]
 
     def second_opinion(
         self, learned: Any, first: Registration, src: Features, tgt: Features, seed: int
@@ -83,17 +85,17 @@ class Fallback:
         clouds: tuple[np.ndarray, np.ndarray],
         scales: list,
         seed: int,
-        restarts: bool = True,
+        changes: tuple[tuple[str, Any], ...] = (),
     ) -> Registration:
         """FPFH's registration of ``clouds`` (``(N, 3)`` in metres), refined by the multiscale
         ICP, from the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` that the learned
-        registrar measured (read only with an auto voxel; None otherwise), with or without the
-        refinement's ``restarts``; T in metres.
+        registrar measured (read only with an auto voxel; None otherwise), by the registrar of
+        ``changes`` (:meth:`registrar`); T in metres.
 
         Raises:
             RegistrationError: FPFH cannot register them.
         """
-        fpfh = self.registrar(restarts)
+        fpfh = self.registrar(changes)
         scales = scales if fpfh.auto_voxel else None
         return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed)
 

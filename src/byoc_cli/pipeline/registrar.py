@@ -203,11 +203,11 @@ class Registrar(Featurizer):
             scan_lines=scan_lines(self, src, tgt),
         )
 
-    def fpfh_registration(self, clouds: tuple, scales: list, seed=None, restarts=True):
+    def fpfh_registration(self, clouds: tuple, scales: list, seed=None, changes=()):
         """:meth:`Fallback.register <byoc_cli.pipeline.fallback.Fallback.register>` of
         ``clouds`` (seed None: the recipe's): FPFH's registration, T in metres."""
         seed = self.recipe.seed if seed is None else seed
-        return self._fallback.register(clouds, scales, seed, restarts)
+        return self._fallback.register(clouds, scales, seed, changes)
 
     def register(
         self,
