@@ -314,6 +314,8 @@ def judge(args: argparse.Namespace) -> None:
             f"learned {fb.get('learned_confidence', r['confidence']):.2f} "
             f"fb {'used' if fb.get('used') else ('ran' if fb else '-')}  {stages}"
         )
+    counts = _count_byoc(args.summary)
+    print(" ".join(f"{k} {v}" for k, v in counts.items()))
 
 
 def main(argv: list[str] | None = None) -> None:
