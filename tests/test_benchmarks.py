@@ -454,6 +454,39 @@ def test_scan_sim_object_pair_is_two_views_of_a_small_object(shared_data, tmp_pa
     assert np.mean(near < 0.002) > 0.3  # the overlap meets within 2 mm
 
 
+@pytest.mark.parametrize("kind", ["blob", "superquadric", "torus", "blobs"])
+def test_a_free_form_object_pair_lies_on_its_mesh_and_its_truth_maps_a_onto_b(kind):
+    import numpy as np
+
+    pytest.importorskip("open3d")
+    from scipy.spatial import cKDTree
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from _scan_sim_shapes import shape_mesh, shape_pair
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    mesh = shape_mesh(kind, 0.1, seed=3)
+    extent = np.asarray(mesh.get_max_bound()) - np.asarray(mesh.get_min_bound())
+    assert np.max(extent) == pytest.approx(0.1)
+    src, tgt, T = shape_pair(kind, 40.0, 0.1, "handheld", resolution=150, noise=0.0, seed=3)
+    for points in (src, tgt):
+        assert len(points) > 3000
+        assert np.max(np.ptp(points, axis=0)) < 0.25  # the object, and mixed pixels behind
+    near = cKDTree(tgt).query(_scan_sim().apply(T, src))[0]
+    assert np.median(near) < 0.002  # without noise the overlap meets within a ray's spacing
+
+
+def test_objects_refuses_a_folder_without_a_pair_list(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "objects.py"), "run", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2 and "no pairs.txt" in result.stderr
+
+
 def _scaling(*args: str, timeout: float = 120, cwd: Path | None = None):
     return subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "scaling.py"), *args],

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 from byoc_cli.cli.main import cli
 from byoc_cli.geometry.transforms import axis_angle_to_matrix
 from byoc_cli.io import read_transform, write_ply
+from tests._smooth import smooth_scan
 
 
 def _rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -539,3 +540,18 @@ def test_tum_depth_images_read_the_depth_scale_of_their_layout(runner, shared_da
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and "--depth-scale" in lines[0] and "median depth" in lines[0]
         assert not (tmp_path / "w.txt").exists()
+
+
+@pytest.mark.slow
+def test_a_smooth_pair_is_registered_with_fpfh_and_the_report_says_why(runner, tmp_path):
+    write_ply(tmp_path / "a.ply", smooth_scan(0))
+    write_ply(tmp_path / "b.ply", smooth_scan(1))
+    report = tmp_path / "r.json"
+    args = ["register", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--json", str(report)]
+    run = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt")])
+    assert run.exit_code == 0, run.output  # two samplings of one surface: the identity
+    got = json.loads(report.read_text())
+    assert got["features"] == "fpfh" and got["features_choice"]["first"] == "fpfh"
+    assert got["features_choice"]["rough_share"][0] <= got["features_choice"]["smooth_share"]
+    assert "restarts" not in got["timings_s"] and "first" in got["timings_s"]
+    assert "(FPFH features: smooth surfaces," in run.stderr

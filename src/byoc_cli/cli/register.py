@@ -179,11 +179,19 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
         f"{format_length(result.inlier_threshold, unit)}, voxel {voxel}, {seconds:.1f} s"
     )
-    if result.fallback and result.fallback["used"]:
+    fallback = result.fallback
+    if fallback and fallback["used"] and fallback["features"] == "fpfh":
         line += (
             f" (FPFH features: the learned ones reached confidence "
-            f"{result.fallback['learned_confidence']:.3f})"
+            f"{fallback['learned_confidence']:.3f})"
         )
+    elif result.features_choice and result.features_choice["first"] == "fpfh":
+        rough = " and ".join(f"{100 * r:.0f} %" for r in result.features_choice["rough_share"])
+        if result.features == "fpfh":
+            line += f" (FPFH features: smooth surfaces, {rough} rough)"
+        else:  # the learned features' second opinion was kept
+            first = fallback["first_confidence"] or 0.0
+            line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
     return line
 
 

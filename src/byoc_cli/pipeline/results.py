@@ -75,6 +75,12 @@ class Registration(NamedTuple):
         recipe: the recipe that ran
             (:meth:`byoc_cli.pipeline.recipe.RegistrationRecipe.as_dict`; the fallback's
             when its result is kept).
+        features_choice: with learned features, an auto voxel and the FPFH fallback, which
+            features the pair started with and why
+            (:meth:`byoc_cli.pipeline.feature_choice.FeaturesChoice.as_dict`): ``"fpfh"`` for a
+            smooth pair (when the learned features ran as its second opinion, ``fallback``
+            says what they reached: ``features: "byoc"``, ``first_confidence``: FPFH's);
+            None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -100,3 +106,4 @@ class Registration(NamedTuple):
     cues: dict[str, float] | None = None
     fallback: dict | None = None
     recipe: dict | None = None
+    features_choice: dict | None = None
