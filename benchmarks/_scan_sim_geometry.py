@@ -69,6 +69,17 @@ def cast(scene, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return hits["t_hit"].numpy().astype(np.float64)
 
 
+def cast_full(scene, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cast` and the unit normals ``(N, 3)`` of the triangles hit (zeros for a miss)."""
+    o3d = quiet_open3d()
+    rays = np.empty((len(directions), 6), dtype=np.float32)
+    rays[:, :3] = origin
+    rays[:, 3:] = directions
+    hits = scene.cast_rays(o3d.core.Tensor(rays))
+    normals = hits["primitive_normals"].numpy().astype(np.float64)
+    return hits["t_hit"].numpy().astype(np.float64), normals
+
+
 def scan(
     scene,
     T_world_sensor: np.ndarray,

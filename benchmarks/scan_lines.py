@@ -1,5 +1,5 @@
 """Spinning-LiDAR pairs whose rings match themselves: `byoc register` with and without the
-scan-line measures (docs/registering.md, "Scans sampled along lines").
+scan-line measures (docs/voxel.md, "Scans sampled along lines").
 
 The street pairs of benchmarks/scan_sim.py (scans in their sensor's frame: the ring pattern
 is fixed to the sensor) at 16, 32, 64 and 128 rings, the second sensor 2 to 8 m ahead and

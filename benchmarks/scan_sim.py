@@ -31,7 +31,9 @@ where float32 would lose more than a millionth of the cloud's size, else float32
 
 This file is the command; the parts are its siblings: `_scan_sim_geometry.py` (transforms, ray
 casting), `_scan_sim_street.py`, `_scan_sim_object.py`, `_scan_sim_variants.py` (geo, hostile)
-and `_scan_sim_write.py` (PLY, ``info.json``, top view).
+and `_scan_sim_write.py` (PLY, ``info.json``, top view). Laser scans of procedural free-form
+objects (no table: deformed spheres, superquadrics, tori, unions of blobs) are
+`_scan_sim_shapes.py`'s, made by ``benchmarks/objects.py make``.
 """
 
 from __future__ import annotations

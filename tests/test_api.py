@@ -15,23 +15,7 @@ from byoc_cli.cli.main import cli
 from byoc_cli.errors import InputError, RegistrationError, ShapeError
 from byoc_cli.io import format_transform, read_transform, write_ply
 from byoc_cli.pipeline import default_weights
-
-
-def _cube(seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    n = 4000
-    pts = rng.uniform(-1, 1, size=(n, 3))
-    axis = rng.integers(0, 3, size=n)
-    pts[np.arange(n), axis] = np.sign(pts[np.arange(n), axis])
-    return pts * np.array([1.5, 1.0, 0.8])
-
-
-def _moved(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    c, s = np.cos(0.2), np.sin(0.2)
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    T[:3, 3] = [0.2, -0.1, 0.05]
-    return pts @ T[:3, :3].T + T[:3, 3], T
+from tests.pipeline._clouds import cube, moved
 
 
 def test_importing_byoc_cli_imports_neither_torch_nor_open3d():
@@ -50,8 +34,8 @@ def test_api_names_are_exported():
 
 
 def test_register_arrays_gives_the_cli_transform(tmp_path):
-    src = _cube()
-    tgt, _ = _moved(src)
+    src = cube()
+    tgt, _ = moved(src)
     result = byoc_cli.register(src, tgt, seed=5, max_points=2000)
     assert isinstance(result, byoc_cli.Registration)
     assert result.T_tgt_src.shape == (4, 4) and result.T_tgt_src.dtype == np.float64
@@ -70,8 +54,8 @@ def test_register_arrays_gives_the_cli_transform(tmp_path):
 
 
 def test_workers_give_the_transform_of_one_thread_and_a_worker_may_register():
-    src = _cube()
-    tgt, _ = _moved(src)
+    src = cube()
+    tgt, _ = moved(src)
     settings = {"seed": 2, "max_points": 2000}
     one = byoc_cli.Registrar(threads=1).register(src, tgt, **settings)
     registrar = byoc_cli.Registrar(threads=2)
@@ -87,8 +71,8 @@ def test_workers_give_the_transform_of_one_thread_and_a_worker_may_register():
 
 
 def test_fpfh_registration_recovers_a_known_motion():
-    src = _cube(1)
-    tgt, T = _moved(src)
+    src = cube(1)
+    tgt, T = moved(src)
     result = byoc_cli.register(src, tgt, features="fpfh", seed=0)
     assert result.estimator == "ransac" and result.refine == "none"
     assert np.abs(result.T_tgt_src - T).max() < 0.05
@@ -96,8 +80,8 @@ def test_fpfh_registration_recovers_a_known_motion():
 
 
 def test_scale_keeps_the_input_units():
-    src_mm = _cube(1) * 1000
-    tgt_mm, T = _moved(_cube(1))
+    src_mm = cube(1) * 1000
+    tgt_mm, T = moved(cube(1))
     tgt_mm = tgt_mm * 1000
     with pytest.raises(InputError, match="millimetres"):  # a fixed voxel in metres
         byoc_cli.register(src_mm, tgt_mm, features="fpfh", voxel_size=None)
@@ -110,24 +94,24 @@ def test_scale_keeps_the_input_units():
 
 def test_extract_features_and_registrar_reuse():
     registrar = byoc_cli.Registrar()
-    feats = registrar.extract(_cube())
+    feats = registrar.extract(cube())
     assert isinstance(feats, byoc_cli.Features)
     m = feats.points.shape[0]
     assert feats.feats.shape[0] == m and feats.feats.dtype == np.float32
     assert np.allclose(np.linalg.norm(feats.feats, axis=1), 1.0, atol=1e-5)
-    assert np.array_equal(_cube()[feats.point_index], feats.points)
-    assert feats.voxel_size == registrar.choose_voxel(_cube()).voxel_size and feats.scale == 1.0
-    same = byoc_cli.extract_features(_cube(), weights=byoc_cli.load_weights())
+    assert np.array_equal(cube()[feats.point_index], feats.points)
+    assert feats.voxel_size == registrar.choose_voxel(cube()).voxel_size and feats.scale == 1.0
+    same = byoc_cli.extract_features(cube(), weights=byoc_cli.load_weights())
     assert np.array_equal(same.feats, feats.feats)
-    other = byoc_cli.Registrar("fpfh").extract(_cube())
+    other = byoc_cli.Registrar("fpfh").extract(cube())
     with pytest.raises(ValueError, match="same features"):
         registrar.match(feats, other)
     # extracted one at a time, two clouds may choose different auto voxels: match extracts
     # both again at the pair's voxel
-    apart = registrar.extract(_cube(1)[::3])
+    apart = registrar.extract(cube(1)[::3])
     assert apart.voxel_size != feats.voxel_size
     result = registrar.match(feats, apart)
-    assert result.voxel_size == registrar.choose_voxel(_cube(), _cube(1)[::3]).voxel_size
+    assert result.voxel_size == registrar.choose_voxel(cube(), cube(1)[::3]).voxel_size
 
 
 @pytest.mark.parametrize(
@@ -148,140 +132,6 @@ def test_missing_file_is_an_input_error(tmp_path: Path):
         byoc_cli.load_cloud(tmp_path / "none.ply")
     with pytest.raises(ValueError, match="features must be"):
         byoc_cli.Registrar("nope")
-
-
-def test_multiscale_refinement_runs_on_the_full_cloud_and_with_kept_points_alone():
-    src = _cube(2)
-    tgt, T = _moved(_cube(3))
-    registrar = byoc_cli.Registrar("fpfh", voxel_size=None)  # features kept in files: one voxel
-    f_src, f_tgt = registrar.extract(src), registrar.extract(tgt)
-    assert np.array_equal(f_src.cloud, src) and np.array_equal(f_tgt.cloud, tgt)
-    full = registrar.match(f_src, f_tgt, refine="multiscale")
-    assert full.refine == "multiscale" and "refine" in full.timings
-    assert np.abs(full.T_tgt_src - T).max() < 0.01
-    # features read back from a file carry no cloud: the kept points are refined instead
-    kept = registrar.match(
-        f_src._replace(cloud=None), f_tgt._replace(cloud=None), refine="multiscale"
-    )
-    assert np.abs(kept.T_tgt_src - T).max() < 0.05
-    assert not np.array_equal(kept.T_tgt_src, full.T_tgt_src)
-
-
-def test_a_cloud_refined_in_several_pairs_is_prepared_once(monkeypatch):
-    import byoc_cli.pipeline.refine as refine
-
-    built = []
-    original = refine.RefineCloud.target
-
-    def counting(self, level):
-        if level not in self._targets:
-            built.append((id(self), level))
-        return original(self, level)
-
-    monkeypatch.setattr(refine.RefineCloud, "target", counting)
-    registrar = byoc_cli.Registrar("fpfh")
-    a, (b, _), (c, _) = _cube(2), _moved(_cube(3)), _moved(_cube(4))
-    fa, fb, fc = registrar.extract(a), registrar.extract(b), registrar.extract(c)
-    first = registrar.match(fa, fb, refine="multiscale")
-    levels = len(built)
-    assert levels == len(refine.LEVELS)  # b's levels as a target
-    again = registrar.match(fa, fb, refine="multiscale")
-    assert len(built) == levels  # nothing rebuilt
-    assert np.array_equal(first.T_tgt_src, again.T_tgt_src)
-    registrar.match(fc, fb, refine="multiscale")
-    assert len(built) == levels  # b is the target again: reused
-    registrar.match(fb, fc, refine="multiscale")
-    assert len(built) == 2 * levels  # c as a target: built once
-
-
-def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
-    src_mm = _cube(1) * 1000
-    tgt, T = _moved(_cube(1))
-    tgt_mm = tgt * 1000
-    plain = byoc_cli.Registrar(fallback=None).register(src_mm, tgt_mm, seed=1)
-    assert plain.fallback is None
-    never = byoc_cli.Registrar(fallback="fpfh", fallback_below=0.0).register(src_mm, tgt_mm, seed=1)
-    assert never.fallback is None and np.array_equal(never.T_tgt_src, plain.T_tgt_src)
-    both = byoc_cli.Registrar(fallback="fpfh", fallback_below=1.0).register(src_mm, tgt_mm, seed=1)
-    note = both.fallback
-    assert note["features"] == "fpfh" and note["learned_confidence"] == plain.confidence
-    assert note["confidence"] is not None and note["seconds"] > 0
-    assert both.confidence == max(plain.confidence, note["confidence"])
-    assert both.features == ("fpfh" if note["used"] else "byoc")
-    assert note["used"] == (note["confidence"] > plain.confidence)
-    assert both.timings["fallback"] == note["seconds"] and "fallback" not in plain.timings
-    assert np.abs(both.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm, either way
-    with pytest.raises(ValueError, match="fallback"):
-        byoc_cli.Registrar("fpfh", fallback="fpfh")
-
-
-def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monkeypatch):
-    import byoc_cli.pipeline.scale as scale
-
-    a, b = _cube(1), _moved(_cube(1))[0]
-    registrar = byoc_cli.Registrar(fallback="fpfh", fallback_below=1.0)  # always runs
-    measured = []
-    monkeypatch.setattr(
-        scale,
-        "measure",
-        lambda p, label="cloud", f=scale.measure: measured.append(label) or f(p, label),
-    )
-    choice = registrar.choose_voxel(a, b)  # the pair's voxel, as register-batch reads it
-    assert len(measured) == 2 and choice.keep_of(0) == choice.keep_of(1) == 1.0
-    fa, fb = (
-        registrar.extract_points(p, 1.0, "cloud", choice.voxel_size, choice.refine_voxel)
-        for p in (a, b)
-    )
-    extracted = []
-    real = byoc_cli.Registrar.extract_points
-    monkeypatch.setattr(
-        byoc_cli.Registrar,
-        "extract_points",
-        lambda self, *args, **kw: extracted.append(self.features) or real(self, *args, **kw),
-    )
-    pairs = [(fa, fb), (fb, fa), (fa, fb)]
-    got = [registrar.match(s, t, seed=2) for s, t in pairs]
-    assert [r.fallback is not None for r in got] == [True] * 3
-    assert len(measured) == 4  # each cloud once more, by the fallback, then kept
-    assert extracted.count("fpfh") == 2  # each cloud's FPFH features once
-    assert got[2].T_tgt_src.tobytes() == got[0].T_tgt_src.tobytes()
-    fresh = byoc_cli.Registrar("fpfh")
-    for (s, t), result in zip(pairs[:2], got, strict=False):
-        alone = fresh.register(s.cloud, t.cloud, scale=1.0, refine="multiscale", seed=2)
-        assert result.fallback["confidence"] == alone.confidence
-        if result.fallback["used"]:
-            assert result.T_tgt_src.tobytes() == alone.T_tgt_src.tobytes()
-
-
-def test_features_from_a_share_of_the_points_index_the_whole_cloud():
-    pts = _cube(2)
-    registrar = byoc_cli.Registrar("fpfh")
-    full = registrar.extract_points(pts, None, "cloud", 0.05)
-    part = registrar.extract_points(pts, None, "cloud", 0.05, keep=0.25)
-    again = registrar.extract_points(pts, None, "cloud", 0.05, keep=0.25)
-    assert part.cloud is pts  # the refinement runs on every point
-    np.testing.assert_array_equal(part.points, pts[part.point_index])
-    assert part.point_index.max() >= len(pts) * 0.5  # indices of the whole cloud, not the share
-    assert len(part.points) < len(full.points)
-    np.testing.assert_array_equal(part.point_index, again.point_index)  # seeded
-
-
-def test_a_loose_depth_image_reads_millimetres_and_refuses_an_implausible_depth(tmp_path):
-    from PIL import Image
-
-    from byoc_cli.errors import InputError
-    from byoc_cli.pipeline.inputs import depth_scale_of, load_cloud
-
-    K = tmp_path / "K.txt"
-    K.write_text("50 0 32\n0 50 24\n0 0 1\n")
-    near, far = tmp_path / "near.png", tmp_path / "far.png"
-    Image.fromarray(np.full((48, 64), 1500, np.uint16)).save(near)
-    Image.fromarray(np.full((48, 64), 40, np.uint16)).save(far)
-    assert depth_scale_of(near) == (1000.0, "default")
-    assert np.median(load_cloud(near, intrinsics=K)[:, 2]) == pytest.approx(1.5)
-    with pytest.raises(InputError, match=r"median depth 0\.04 m .*--depth-scale"):
-        load_cloud(far, intrinsics=K)
-    assert np.median(load_cloud(far, intrinsics=K, depth_scale=40)[:, 2]) == pytest.approx(1.0)
 
 
 # ------------------------------------------------------------------ the documented API
@@ -399,25 +249,3 @@ def test_a_registration_says_whether_it_passed_the_gate():
     assert result.passed == (result.confidence >= 0.45)
     strict = byoc_cli.Registrar(features="fpfh", fallback_below=1.0).register(src, tgt, seed=0)
     assert strict.confidence < 1.0 and strict.passed is False
-
-
-def test_only_clouds_sampled_along_lines_ask_the_fit_for_a_second_try(monkeypatch):
-    import byoc_cli.pipeline.register as register_module
-    from tests._rings import camera_scan, ring_scan
-
-    seen = []
-    real = register_module.estimate_transform
-
-    def spy(*args, **kwargs):
-        seen.append(kwargs.get("scan_lines"))
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(register_module, "estimate_transform", spy)
-    rings, camera = ring_scan(), camera_scan()
-    registrar = byoc_cli.Registrar(fallback=None)
-    for cloud in (rings, camera):
-        registrar.register(cloud, _moved(cloud)[0])
-    with pytest.warns(UserWarning, match="differs from the 0.025 m"):
-        explicit = byoc_cli.Registrar(fallback=None, voxel_size=0.5)
-    explicit.register(rings, _moved(rings)[0])
-    assert seen == [True, False, False]  # an explicit voxel: no auto measure, no flag

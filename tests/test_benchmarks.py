@@ -85,6 +85,51 @@ def test_low_overlap_reports_of_other_weights_are_named_after_them(tmp_path):
     assert lines[-1] == "| fpfh | - | - | - | - | - |"  # FPFH reads no weights
 
 
+def _low_overlap_estimators(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    script = ROOT / "benchmarks" / "low_overlap_estimators.py"
+    return subprocess.run(
+        [sys.executable, str(script), "--out", str(tmp_path / "eval"), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_low_overlap_estimators_refuses_a_missing_folder_or_estimator_before_running(tmp_path):
+    result = _low_overlap_estimators(tmp_path, "--fragments", str(tmp_path / "absent"))
+    assert result.returncode == 2 and "no such folder" in result.stderr
+    result = _low_overlap_estimators(tmp_path, "--fragments", str(tmp_path), "--estimators", "x")
+    assert result.returncode == 2 and "--estimators" in result.stderr
+    assert not (tmp_path / "eval").exists()
+
+
+def test_low_overlap_estimators_table_scores_the_records_against_ransac(tmp_path):
+    def record(j, rmse, rot, fit):
+        return {"scene": "s", "i": 0, "j": j, "official": j > 1, "rmse_m": rmse,
+                "rotation_error_deg": rot, "translation_error_m": 0.05, "fit_seconds": fit,
+                "seconds": 2 * fit}  # fmt: skip
+
+    (tmp_path / "eval").mkdir()
+    runs = {
+        "ransac": [record(2, 0.1, 1.0, 0.1), record(3, 0.5, 30.0, 0.1), record(1, 0.1, 1.0, 0.1)],
+        "sc2": [record(2, 0.1, 1.0, 0.2), record(3, 0.1, 2.0, 0.2), record(1, 0.1, 1.0, 0.2)],
+    }
+    for name, records in runs.items():
+        path = tmp_path / "eval" / f"dev-low-fpfh-{name}-coarse.json"
+        path.write_text(json.dumps(records))
+    args = ["--fragments", str(tmp_path), "--features", "fpfh", "--sets", "dev-low"]
+    result = _low_overlap_estimators(tmp_path, *args, "--estimators", "ransac", "sc2",
+                                     "--table-only")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert (
+        lines[2]
+        == "| dev-low | fpfh | ransac | coarse | 50.0 (1 / 2) | 66.7 | 100.0 | 0.100 | 0.20 |"
+    )
+    assert lines[3].startswith("| dev-low | fpfh | sc2 | coarse | 100.0 (2 / 2) | 100.0 |")
+    assert "sc2 registers 2 against RANSAC's 1 (+1 / -0 pairs), fit time x2.00" in lines[-1]
+
+
 def test_scans_refuses_unknown_features_or_a_missing_sequence_before_running(tmp_path):
     script = ROOT / "benchmarks" / "scans.py"
     out = tmp_path / "bench"
@@ -407,6 +452,39 @@ def test_scan_sim_object_pair_is_two_views_of_a_small_object(shared_data, tmp_pa
     moved = sim.apply(T, src)
     near = cKDTree(tgt).query(moved)[0]
     assert np.mean(near < 0.002) > 0.3  # the overlap meets within 2 mm
+
+
+@pytest.mark.parametrize("kind", ["blob", "superquadric", "torus", "blobs"])
+def test_a_free_form_object_pair_lies_on_its_mesh_and_its_truth_maps_a_onto_b(kind):
+    import numpy as np
+
+    pytest.importorskip("open3d")
+    from scipy.spatial import cKDTree
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from _scan_sim_shapes import shape_mesh, shape_pair
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    mesh = shape_mesh(kind, 0.1, seed=3)
+    extent = np.asarray(mesh.get_max_bound()) - np.asarray(mesh.get_min_bound())
+    assert np.max(extent) == pytest.approx(0.1)
+    src, tgt, T = shape_pair(kind, 40.0, 0.1, "handheld", resolution=150, noise=0.0, seed=3)
+    for points in (src, tgt):
+        assert len(points) > 3000
+        assert np.max(np.ptp(points, axis=0)) < 0.25  # the object, and mixed pixels behind
+    near = cKDTree(tgt).query(_scan_sim().apply(T, src))[0]
+    assert np.median(near) < 0.002  # without noise the overlap meets within a ray's spacing
+
+
+def test_objects_refuses_a_folder_without_a_pair_list(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "objects.py"), "run", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2 and "no pairs.txt" in result.stderr
 
 
 def _scaling(*args: str, timeout: float = 120, cwd: Path | None = None):

@@ -253,3 +253,14 @@ def test_no_function_takes_more_than_8_parameters():
     assert not found, (
         f"functions with more than 8 parameters (group them in a dataclass): {sorted(found)}"
     )
+
+
+def test_nothing_below_the_api_imports_it():
+    # the API is a facade over the pipeline's engine: the commands and the pipeline never
+    # reach back up into it (only the package's lazy re-export names it)
+    offences = sorted(
+        name
+        for name, path in MODULES.items()
+        if name not in ("byoc_cli", "byoc_cli.api") and "byoc_cli.api" in _targets(path)
+    )
+    assert not offences, f"modules that import byoc_cli.api: {offences}"

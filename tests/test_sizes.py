@@ -73,3 +73,25 @@ def test_the_known_exceptions_still_exist_and_still_need_to_be():
 def test_the_api_is_a_thin_facade():
     lines = _lines(SRC / "byoc_cli" / "api.py")
     assert lines < MAX_API_LINES, f"api.py has {lines} lines: the engine belongs in pipeline/"
+
+
+MAX_PAGE_LINES = 250
+
+
+def test_no_reference_page_is_over_250_lines():
+    # dated experiments and campaign logs live in docs/experiments/; a page a user reads to run
+    # and trust a command stays short (issue 34)
+    docs = ROOT / "docs"
+    long = {
+        p.relative_to(ROOT).as_posix(): _lines(p)
+        for p in sorted(docs.rglob("*.md"))
+        if "experiments" not in p.relative_to(docs).parts and _lines(p) > MAX_PAGE_LINES
+    }
+    assert not long, (
+        f"docs pages over {MAX_PAGE_LINES} lines (move history to experiments/): {long}"
+    )
+
+
+def test_a_failing_registration_has_its_section():
+    text = (ROOT / "docs" / "confidence.md").read_text(encoding="utf-8")
+    assert "\n## When a registration fails\n" in text

@@ -336,3 +336,16 @@ def test_an_init_column_that_is_an_output_or_an_extra_column_is_refused(runner, 
     listing.write_text("a.ply b.ply T.txt init.txt\nc.ply d.ply init.txt\n")
     res = runner.invoke(cli, ["register-batch", str(listing)])
     assert res.exit_code == 1 and "init.txt" in res.stderr  # an output over an input
+@pytest.mark.slow
+def test_a_smooth_pair_records_why_fpfh_registered_it(tmp_path):
+    from byoc_cli.io import write_ply
+    from tests._smooth import smooth_scan
+
+    write_ply(tmp_path / "a.ply", smooth_scan(0))
+    write_ply(tmp_path / "b.ply", smooth_scan(1))
+    (tmp_path / "pairs.txt").write_text("a.ply b.ply\n")
+    run = CliRunner().invoke(cli, ["register-batch", str(tmp_path / "pairs.txt"), "-q"])
+    assert run.exit_code == 0, run.output
+    record = json.loads((tmp_path / "summary.jsonl").read_text().splitlines()[0])
+    assert record["features"] == "fpfh" and record["features_choice"]["first"] == "fpfh"
+    assert record["status"] == "ok" and "first" in record["timings_s"]

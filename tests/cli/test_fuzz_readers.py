@@ -43,6 +43,19 @@ def _ply_binary() -> bytes:
         return (Path(folder) / "b.ply").read_bytes()
 
 
+def _las(suffix: str) -> bytes:
+    """BOX as a LAS 1.4 (point format 6) or LAZ file, offsets and 0.1 mm scales."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = np.full(3, 1e-4), np.zeros(3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = BOX.T
+    with tempfile.TemporaryDirectory() as folder:
+        las.write(str(Path(folder) / f"a{suffix}"))
+        return (Path(folder) / f"a{suffix}").read_bytes()
+
+
 def _pcd_ascii() -> bytes:
     head = "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
     head += "WIDTH 40\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 40\nDATA ascii\n"
@@ -126,6 +139,16 @@ class Folder:
 def test_fuzz_ply(name, base, data):
     with Folder() as folder:
         folder.register(folder.write(name, data.draw(mutated(base))))
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+@fuzz_settings(150)
+@given(data=st.data())
+def test_fuzz_las(suffix, data):
+    # a corrupt count in a LAS header or a LAZ chunk table once made laspy loop for hours or
+    # lazrs abort the process on an allocation of tens of GB
+    with Folder() as folder:
+        folder.register(folder.write(f"a{suffix}", data.draw(mutated(_las(suffix), 1200))))
 
 
 @pytest.mark.parametrize("base", [_pcd_ascii(), _pcd_binary()], ids=["ascii", "binary"])

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 from byoc_cli.cli.main import cli
 from byoc_cli.geometry.transforms import axis_angle_to_matrix
 from byoc_cli.io import read_transform, write_ply
+from tests._smooth import smooth_scan
 
 
 def _rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -174,6 +175,19 @@ def test_ransac_estimator_and_multiscale_recover_synthetic(runner, tmp_path):
     T = read_transform(out)
     assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 2.0
     assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.05
+
+
+def test_sc2_estimator_recovers_synthetic_and_is_reported(runner, tmp_path):
+    src, tgt, T_gt = _synthetic_pair(tmp_path)
+    out = tmp_path / "T.txt"
+    report = tmp_path / "r.json"
+    args = ["register", str(src), str(tgt), "--features", "fpfh", "--voxel-size", "0.05"]
+    res = runner.invoke(cli, [*args, "--estimator", "sc2", "-o", str(out), "--json", str(report)])
+    assert res.exit_code == 0, res.output
+    T = read_transform(out)
+    assert _rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 2.0
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.05
+    assert json.loads(report.read_text())["recipe"]["fitting"]["estimator"] == "sc2"
 
 
 def test_confidence_gate_exit_3(runner, random_weights, tmp_path):
@@ -649,3 +663,16 @@ def test_init_options_are_checked_as_usage_errors(runner, tmp_path):
     # -o may not overwrite the initial pose it reads
     res = runner.invoke(cli, [*with_init, "-o", str(tmp_path / "init.txt")])
     assert res.exit_code != 0 and read_transform(tmp_path / "init.txt") is not None
+@pytest.mark.slow
+def test_a_smooth_pair_is_registered_with_fpfh_and_the_report_says_why(runner, tmp_path):
+    write_ply(tmp_path / "a.ply", smooth_scan(0))
+    write_ply(tmp_path / "b.ply", smooth_scan(1))
+    report = tmp_path / "r.json"
+    args = ["register", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--json", str(report)]
+    run = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt")])
+    assert run.exit_code == 0, run.output  # two samplings of one surface: the identity
+    got = json.loads(report.read_text())
+    assert got["features"] == "fpfh" and got["features_choice"]["first"] == "fpfh"
+    assert got["features_choice"]["rough_share"][0] <= got["features_choice"]["smooth_share"]
+    assert "restarts" not in got["timings_s"] and "first" in got["timings_s"]
+    assert "(FPFH features: smooth surfaces," in run.stderr

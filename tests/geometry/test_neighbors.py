@@ -301,7 +301,10 @@ def test_smallest_eigenvector_of_isotropic_and_double_roots():
 
 
 def test_a_cell_index_refuses_a_cell_fuller_than_its_bound():
-    pts = torch.cat([torch.zeros(MAX_PER_CELL + 1, 3), torch.rand(100, 3, dtype=torch.float64)])
+    # the scattered points stay out of the full cell at the origin
+    g = torch.Generator().manual_seed(0)
+    scattered = 0.5 + torch.rand(100, 3, dtype=torch.float64, generator=g)
+    pts = torch.cat([torch.zeros(MAX_PER_CELL + 1, 3, dtype=torch.float64), scattered])
     with pytest.raises(ValueError, match="k-d tree"):
         CellIndex(pts.double(), 0.1)
     assert CellIndex(pts.double(), 0.1, max_per_cell=None).max_count == MAX_PER_CELL + 1

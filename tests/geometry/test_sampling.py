@@ -17,6 +17,7 @@ from byoc_cli.geometry.sampling import (
     linear_share,
     local_frame,
     nearest_spacing,
+    rough_share,
 )
 from byoc_cli.geometry.voxel import voxelize
 from tests._rings import camera_scan, ring_scan
@@ -199,3 +200,67 @@ def test_linear_share_of_degenerate_clouds():
         linear_share(torch.zeros(4, 2), 0.1)
     with pytest.raises(ShapeError):
         linear_share(torch.zeros(4, 3), 0.0)
+
+
+def _sphere(n: int, seed: int, radius: float = 1.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n, 3))
+    return radius * u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def _box(n: int, seed: int, size: float = 1.0) -> np.ndarray:
+    """Points on the faces of a cube: planes meeting at edges and corners."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(0, size, (n, 3))
+    axis, side = rng.integers(0, 3, n), rng.integers(0, 2, n)
+    p[np.arange(n), axis] = side * size
+    return p
+
+
+def test_a_smooth_sphere_is_not_rough_and_a_box_is_at_its_edges():
+    # 40 voxels across the radius, as the auto voxel makes it; the box: 40 voxels a side
+    sphere = torch.from_numpy(_sphere(60000, 0))
+    assert rough_share(sphere, 1 / 40) < 0.02
+    box = torch.from_numpy(_box(60000, 1))
+    assert rough_share(box, 1 / 40) > 0.05  # the neighbourhoods at the 12 edges, 8 corners
+
+
+def test_noise_or_clutter_makes_a_surface_rough():
+    rng = np.random.default_rng(2)
+    sphere = _sphere(60000, 3)
+    noisy = sphere + rng.normal(0, 0.5 / 40, sphere.shape)  # half a voxel
+    assert rough_share(torch.from_numpy(noisy), 1 / 40) > 0.5
+    clutter = rng.uniform(-1, 1, (60000, 3))
+    assert rough_share(torch.from_numpy(clutter), 0.1) > 0.9
+
+
+@pytest.mark.parametrize("factor", [1e-3, 1e3])
+def test_the_rough_share_does_not_depend_on_the_unit(factor):
+    box = _box(20000, 4)
+    got = rough_share(torch.from_numpy(box * factor), 0.03 * factor)
+    assert got == pytest.approx(rough_share(torch.from_numpy(box), 0.03), abs=0.02)
+
+
+def test_rough_share_against_the_surface_variation_worked_by_hand():
+    # a 5 x 5 grid of step 1 with its middle point lifted by 3: every query's neighbourhood
+    # is all 25 points (within 8 voxels of 1); variances 2, 2 (x, y) and
+    # 9 / 25 - (3 / 25)^2 = 0.3456 (z), no covariance: variation 0.3456 / 4.3456 = 0.0795
+    xy = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0)), -1).reshape(-1, 2)
+    z = np.zeros(25)
+    z[12] = 3.0
+    pts = np.column_stack([xy, z])
+    cov = np.cov(pts.T, bias=True)
+    variation = np.linalg.eigvalsh(cov)[0] / np.trace(cov)
+    assert variation == pytest.approx(0.3456 / 4.3456)
+    assert rough_share(torch.from_numpy(pts), 1.0, samples=25) == 1.0
+    assert rough_share(torch.from_numpy(np.column_stack([xy, np.zeros(25)])), 1.0) == 0.0
+
+
+def test_rough_share_of_degenerate_clouds():
+    assert rough_share(torch.zeros(0, 3), 0.1) == 0.0
+    few = torch.from_numpy(_surface(LINE_MIN_POINTS - 1, 11))
+    assert rough_share(few, 0.01) == 0.0
+    with pytest.raises(ShapeError):
+        rough_share(torch.zeros(4, 2), 0.1)
+    with pytest.raises(ShapeError):
+        rough_share(torch.zeros(4, 3), -1.0)

@@ -35,6 +35,14 @@ def test_refuses_inputs_links_to_them_and_files_in_input_folders(tmp_path):
     assert out.claim(data / "new.json") == data / "new.json"  # a new file there is fine
 
 
+def test_one_scan_of_a_file_as_input_protects_the_file(tmp_path):
+    site = tmp_path / "site.e57"
+    site.write_bytes(b"scans")
+    out = OutputSet(inputs=[f"{site}:2"])
+    with pytest.raises(InputError, match="is an input of this run"):
+        out.claim(site)
+
+
 def test_refuses_folders_fifos_and_missing_folders(tmp_path):
     out = OutputSet()
     with pytest.raises(InputError, match="is a folder"):

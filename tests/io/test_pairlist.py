@@ -22,6 +22,7 @@ def test_columns_comments_and_relative_paths(tmp_path: Path):
         PairEntry(1, 4, Path("/abs/c.ply"), listing.parent / "d.ply", listing.parent / "out/T.txt"),
     ]
     assert default_output_name(Path("x/a.ply"), Path("b.npy")) == "a__b.txt"
+    assert default_output_name(Path("s.e57:0"), Path("s.e57:1")) == "s_scan0__s_scan1.txt"
 
 
 @pytest.mark.parametrize("text", ["a\n", "a b c d e\n", "# only\n", ""])

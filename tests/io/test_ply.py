@@ -28,3 +28,24 @@ def test_huge_ascii_vertex_count_names_the_file(tmp_path):
     with pytest.raises(InputError, match="header says 1000000000000 vertices, found 1") as info:
         read_point_cloud(path)
     assert info.value.path == str(path)
+
+
+def test_scalars_are_float_properties_after_the_colours(tmp_path):
+    import numpy as np
+    from plyfile import PlyData
+
+    from byoc_cli.errors import ShapeError
+    from byoc_cli.io import write_ply
+
+    points = np.arange(12, dtype=np.float64).reshape(4, 3)
+    colors = np.full((4, 3), 7, dtype=np.uint8)
+    write_ply(tmp_path / "s.ply", points, colors, scalars={"residual": np.array([0, 1, 2, 3.5])})
+    vertex = PlyData.read(str(tmp_path / "s.ply"))["vertex"]
+    names = [p.name for p in vertex.properties]
+    assert names == ["x", "y", "z", "red", "green", "blue", "residual"]
+    assert vertex["residual"].dtype == np.float32
+    np.testing.assert_array_equal(vertex["residual"], [0, 1, 2, 3.5])
+    for bad in ({"residual": np.zeros(3)}, {"red": np.zeros(4)}, {"a b": np.zeros(4)}):
+        with pytest.raises(ShapeError):
+            write_ply(tmp_path / "bad.ply", points, colors, scalars=bad)
+    assert not (tmp_path / "bad.ply").exists()

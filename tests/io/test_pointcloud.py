@@ -267,7 +267,7 @@ def test_extensions(tmp_path):
     assert problem == f"unsupported extension '.foo' (supported: {', '.join(SUPPORTED_EXTENSIONS)})"
     (tmp_path / "noext").write_text("1 2 3\n")
     assert _error(tmp_path / "noext").startswith("no file extension to tell the format")
-    assert _error(tmp_path / "noext", "las").startswith("unsupported format 'las'")
+    assert _error(tmp_path / "noext", "stl").startswith("unsupported format 'stl'")
 
 
 PLY_HEAD = "ply\nformat binary_little_endian 1.0\n"

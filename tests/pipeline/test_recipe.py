@@ -50,6 +50,15 @@ def test_a_file_names_the_preset_and_changes_some_fields(tmp_path):
     assert load_recipe(path) == preset()
 
 
+def test_a_file_may_name_the_sc2_estimator_and_the_config_carries_it(tmp_path):
+    path = tmp_path / "r.toml"
+    path.write_text('[fitting]\nestimator = "sc2"\n')
+    got = load_recipe(path)
+    assert got.fitting.estimator == "sc2"
+    assert register_config(got).estimator == "sc2"
+    assert PRESETS["byoc"].fitting.estimator == PRESETS["fpfh"].fitting.estimator == "ransac"
+
+
 @pytest.mark.parametrize(
     ("text", "problem"),
     [

@@ -36,6 +36,7 @@ from byoc_cli.cli.options import (
     resolve_device,
     verbosity_options,
 )
+from byoc_cli.cli.pair_files import BatchQc, batch_qc_option, check_qc_dir
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
     cloud_factors,
@@ -118,6 +119,7 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     "dropped first).",
 )
 @init_options
+@batch_qc_option
 @recipe_options(*PAIRWISE)
 @input_options
 @device_option
@@ -130,6 +132,7 @@ def register_batch(
     shard: tuple[int, int] | None,
     overwrite: bool,
     cache_size: int,
+    qc_dir: Path | None,
     **options: Any,
 ) -> None:
     """Register every pair of PAIRS, a text file of 'source target [output [init]]' lines
@@ -175,6 +178,7 @@ def register_batch(
     check_depth_inputs(
         [p for entry, _ in planned for p in (entry.source, entry.target)], intrinsics
     )
+    check_qc_dir(qc_dir)
     if summary is None:
         name = "summary.jsonl" if shard is None else f"summary.shard-{shard[0]}-of-{shard[1]}.jsonl"
         summary = out_dir / name
@@ -223,9 +227,13 @@ def register_batch(
                 },
                 inputs,
             )
+            load = {"intrinsics": intrinsics, "depth_scale": options["depth_scale"]}
+            qc = None if qc_dir is None else BatchQc(qc_dir, inputs, load)
             with _Progress(len(todo)) as progress:
                 for (entry, output), done in zip(todo, run.in_order(todo), strict=True):
                     record = run.finish(entry, output, done)
+                    if qc is not None and record["status"] == LOW_CONFIDENCE:
+                        record["qc"] = qc.write(entry.line, output, record)
                     counts[record["status"]] += 1
                     lines.write(record)
                     if record["status"] == LOW_CONFIDENCE:

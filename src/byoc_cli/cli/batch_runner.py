@@ -92,7 +92,15 @@ class PairRunner:
                 future.cancel()
 
     def compute(self, entry) -> tuple[Any, float]:
-        """``(registration or the exception, seconds)`` of one pair."""
+        """``(registration or the exception, seconds)`` of one pair (a smooth pair starts with
+        FPFH: :mod:`byoc_cli.pipeline.feature_choice`)."""
+        from byoc_cli.pipeline.feature_choice import (
+            LEARNED_SECOND_OPINION,
+            applies,
+            features_for,
+            smooth_first,
+        )
+
         started = time.perf_counter()
         timings: dict[str, float] = {}
         try:
@@ -108,13 +116,31 @@ class PairRunner:
             guess = self._guess(entry)
             if guess is not None and guess.mode == "local":
                 return self._local(cloud_src, cloud_tgt, choice, guess, timings), _since(started)
-            src = self._features(cloud_src, voxels[0], timings, "features_src")
-            tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
-            result = self.registrar.match(src, tgt)
-            result = result._replace(
-                timings={**timings, **result.timings},
-                voxel_choice=None if choice is None else choice.as_dict(),
-            )
+            picked = None
+            if choice is not None and applies(self.registrar):
+                clouds = (cloud_src[0], cloud_tgt[0])
+                picked = features_for(self.registrar, clouds, choice.voxel_size)
+
+            def learned(second_opinion: bool = True):
+                src = self._features(cloud_src, voxels[0], timings, "features_src")
+                tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
+                match = self.registrar.match if second_opinion else self.registrar.match_alone
+                return match(src, tgt)
+
+            if picked is not None and picked.first == "fpfh":
+                scales = [cloud_src[2], cloud_tgt[2]]
+                second = (lambda: learned(False)) if LEARNED_SECOND_OPINION else None
+                result = smooth_first(self.registrar, clouds, scales, second, picked, factor_tgt)
+                if result.voxel_choice is None:  # the learned features' result
+                    result = result._replace(voxel_choice=choice.as_dict())
+                result = result._replace(timings={**timings, **result.timings})
+            else:
+                result = learned()
+                result = result._replace(
+                    timings={**timings, **result.timings},
+                    voxel_choice=None if choice is None else choice.as_dict(),
+                    features_choice=None if picked is None else picked.as_dict(),
+                )
             if guess is not None:
                 from byoc_cli.pipeline.local import check_global
 

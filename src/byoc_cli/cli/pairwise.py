@@ -295,6 +295,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "unit": known_unit(result, pair, run["factors_given"]),
         "voxel_choice": result.voxel_choice,
         "fallback": result.fallback,
+        "features_choice": result.features_choice,
         "scale": run["scale"],
         "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
         "source_scale": run["factors"][0],

@@ -73,8 +73,9 @@ def _options() -> dict[str, Callable]:
             "--estimator",
             type=click.Choice(["auto", *recipes.ESTIMATORS]),
             default=None,
-            help="RANSAC or randomized weighted Procrustes (the paper's); auto: the "
-            f"recipe's. {_default('fitting.estimator')}",
+            help="RANSAC, randomized weighted Procrustes (the paper's) or sc2 (second-order "
+            "spatial compatibility, for few inliers: docs/low-overlap.md); auto: the recipe's. "
+            f"{_default('fitting.estimator')}",
         ),
         "refine": click.option(
             "--refine",
@@ -105,7 +106,7 @@ def _options() -> dict[str, Callable]:
             default=None,
             help="Exit 3 when the confidence, the calibrated probability that T is right, is "
             "below this (the default keeps 95 % of the right results of the development pairs, "
-            f"docs/registering.md; 0 accepts every result) {_default('gate.min_confidence')}.",
+            f"docs/confidence.md; 0 accepts every result) {_default('gate.min_confidence')}.",
         ),
         "fallback": click.option(
             "--fallback",
@@ -113,7 +114,7 @@ def _options() -> dict[str, Callable]:
             default=None,
             help="With byoc features: when the confidence is below --min-confidence, register "
             "the pair again with FPFH features (same scale, same refinement) and keep the more "
-            "confident result; the report says which ran (docs/registering.md). none: never. "
+            "confident result; the report says which ran (docs/confidence.md). none: never. "
             f"{_default('gate.fallback')}",
         ),
         "seed": click.option(

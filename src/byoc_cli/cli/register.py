@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,13 @@ from byoc_cli.cli.output import (
     main_output,
     write_json,
     write_stdout,
-    write_stdout_bytes,
+)
+from byoc_cli.cli.pair_files import (
+    check_pair_files,
+    qc_name,
+    qc_option,
+    write_aligned_source,
+    write_pair_qc,
 )
 from byoc_cli.cli.pairwise import (
     check_depth_inputs,
@@ -79,8 +84,9 @@ class RegisterOptions:
     "--aligned",
     default=None,
     dash=True,
-    help="Write the source, transformed into the target frame, as binary PLY ('-' is "
-    "stdout, with -o FILE).",
+    help="Write the source, transformed into the target frame: binary PLY ('-' is stdout, "
+    "with -o FILE), or by extension .las/.laz (a LAS/LAZ source's header and point records "
+    "with new x, y, z) or .e57 (one scan).",
 )
 @path_option(
     "--json",
@@ -98,6 +104,7 @@ class RegisterOptions:
     "features) and exits 3 when it leaves --max-correction or fits poorly (docs/poses.md).",
 )
 @init_options
+@qc_option
 @recipe_options(*PAIRWISE)
 @input_options
 @device_option
@@ -109,13 +116,15 @@ def register(
     output: Path,
     aligned: Path | None,
     json_path: Path | None,
+    qc_dir: Path | None,
     **options: Any,
 ) -> None:
     """Register SOURCE onto TARGET and write T, the 4x4 transform that maps SOURCE into
     TARGET's frame: x_tgt = R x_src + t (column vectors; T = [[R, t], [0, 0, 0, 1]]).
 
-    SOURCE and TARGET are point clouds (.ply, .pcd, .xyz, .pts, .npy of shape N x 3) in
-    any unit (the voxel follows their size; T is in their units; --scale brings them to
+    SOURCE and TARGET are point clouds (.ply, .pcd, .xyz, .pts, .npy of shape N x 3,
+    .las, .laz, .e57; one scan of a multi-scan E57 file as FILE.e57:K, 0-based) in any unit
+    (the voxel follows their size; T is in their coordinates as read; --scale brings them to
     metres), or depth images (.png, with --intrinsics and --depth-scale). Lengths the report
     gives are in metres when the unit is known, else in input units.
     """
@@ -128,11 +137,11 @@ def register(
     check_binary_stdout(aligned, "--aligned")
     init_settings(o.init_path, options)  # usage errors first
     inputs = (source, target, o.intrinsics, recipe_file, _path(recipe.features.weights))
+    check_pair_files(aligned, source, qc_dir)
     outputs = claim_outputs(
         {"-o": output, "--aligned": aligned, "--json": json_path}, inputs=(*inputs, o.init_path)
     )
-    from byoc_cli.io import atomic_write_text, format_transform, read_transform, write_ply
-    from byoc_cli.pipeline.inputs import load_cloud
+    from byoc_cli.io import atomic_write_text, format_transform, read_transform
 
     guess = init_settings(None if o.init_path is None else read_transform(o.init_path), options)
     made = registrar(recipe, o.device)
@@ -155,18 +164,9 @@ def register(
 
     with outputs:  # every file is committed at the end of the block, or none
         if aligned is not None:
-            with warnings.catch_warnings():  # read again: its warnings were shown once
-                warnings.simplefilter("ignore")
-                src, tgt = factors
-                if src == tgt:  # the source in its own units, as read
-                    points = load_cloud(source, scale=src, **load) / (src or 1.0)
-                else:  # the source brought into the target's units
-                    points = load_cloud(source, scale=src / tgt, **load)
-            moved = points @ T[:3, :3].T + T[:3, 3]
-            if is_stdout(aligned):
-                write_stdout_bytes(write_ply(None, moved))
-            else:
-                write_ply(aligned, moved)
+            write_aligned_source(aligned, source, T, factors, load)
+        if qc_dir is not None:
+            report["qc"] = write_pair_qc(outputs, qc_dir, qc_name(source, target), report, load)
         write_json(json_path, report)
         if is_stdout(output):
             write_stdout(format_transform(T))
@@ -199,11 +199,19 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
         f"{result.num_inliers}/{result.num_correspondences} inliers within "
         f"{format_length(result.inlier_threshold, unit)}, voxel {voxel}, {seconds:.1f} s"
     )
-    if result.fallback and result.fallback["used"]:
+    fallback = result.fallback
+    if fallback and fallback["used"] and fallback["features"] == "fpfh":
         line += (
             f" (FPFH features: the learned ones reached confidence "
-            f"{result.fallback['learned_confidence']:.3f})"
+            f"{fallback['learned_confidence']:.3f})"
         )
+    elif result.features_choice and result.features_choice["first"] == "fpfh":
+        rough = " and ".join(f"{100 * r:.0f} %" for r in result.features_choice["rough_share"])
+        if result.features == "fpfh":
+            line += f" (FPFH features: smooth surfaces, {rough} rough)"
+        else:  # the learned features' second opinion was kept
+            first = fallback["first_confidence"] or 0.0
+            line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
     if result.init is not None:
         line += f" (global; {_moved(result.init['correction'], unit)} from --init)"
     return line

@@ -29,6 +29,7 @@ from byoc_cli.cli.options import (
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 from byoc_cli.cli.pairwise import StageProgress, pairwise_setup
 from byoc_cli.cli.recipe_options import build_recipe, recipe_options
+from byoc_cli.io.cloudpath import cloud_stem
 from byoc_cli.pipeline.recipe import RegistrationRecipe
 
 log = logging.getLogger("byoc")
@@ -119,7 +120,7 @@ def _stale_poses(poses_dir: Path, written: list[Path]) -> list[Path]:
     )
 
 
-def _pair_json(pair, poses, scans: list[Path]) -> dict:
+def _pair_json(pair, poses, scans: list[Path], origin) -> dict:
     import numpy as np
 
     from byoc_cli.pipeline.posegraph import transform_difference
@@ -138,7 +139,7 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
         "pruned": pair.pruned,
         "seconds": pair.seconds,
         "error": pair.error or None,
-        "T_i_j": None if pair.T_i_j is None else pair.T_i_j.tolist(),
+        "T_i_j": None if pair.T_i_j is None else _about(pair.T_i_j, origin).tolist(),
     }
     if pair.T_i_j is not None and poses[pair.i] is not None and poses[pair.j] is not None:
         graph = np.linalg.inv(poses[pair.i]) @ poses[pair.j]
@@ -220,6 +221,9 @@ def _pair_json(pair, poses, scans: list[Path]) -> dict:
 def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: Any) -> None:
     """Register overlapping SCANS (point clouds) into the frame of the first one.
 
+    An E57 file of several scans gives each of its scans (in the file's frame: their stored
+    poses applied), named FILE.e57:K (0-based) and poses/<stem>_scanK.txt.
+
     Every overlapping pair is registered with the pairwise registration of `byoc register`
     (the same --features, --weights, --voxel-size) and refined by ICP; a pose graph of the
     pairs, with their information matrices, is optimised with Open3D's global optimisation,
@@ -230,18 +234,21 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
     recipe_file = options.get("recipe_path")
     recipe = build_recipe(options)
     settings = ScansOptions(**options, recipe=recipe, recipe_file=recipe_file)
-    scans_list = list(scans)
+    from byoc_cli.io.e57 import expand_scans
+
+    scans_list = expand_scans(list(scans))  # an E57 file of several scans: each scan
     if len(scans_list) < 2:
         raise click.UsageError("register-scans needs at least 2 scans")
     stems: dict[str, Path] = {}
     for path in scans_list:
-        if path.stem in stems:
+        stem = cloud_stem(path)
+        if stem in stems:
             raise click.BadParameter(
-                f"{stems[path.stem]} and {path} have the same name {path.stem!r} "
+                f"{stems[stem]} and {path} have the same name {stem!r} "
                 "(poses/<name>.txt); rename one",
                 param_hint="'SCANS'",
             )
-        stems[path.stem] = path
+        stems[stem] = path
     from byoc_cli.io.folders import check_run_folder
 
     check_run_folder(out, _is_scans_folder, what="register-scans folder")
@@ -263,7 +270,7 @@ def _run(
     from byoc_cli.io.trajectory import format_trajectory_log
     from byoc_cli.pipeline.scans import ScansConfig, config_dict, merge_clouds, register_scans
 
-    pose_paths = [out / "poses" / f"{path.stem}.txt" for path in scans]
+    pose_paths = [out / "poses" / f"{cloud_stem(path)}.txt" for path in scans]
     outputs = claim_outputs(
         {
             "report": out / "report.json",
@@ -278,11 +285,13 @@ def _run(
     scale = options.scale
     auto = options.recipe.features.voxel == "auto" and scale is None
     points = [_load(path, 1.0 if auto else scale) for path in scans]
+    origin, points = _about_first(points)  # georeferenced scans: about the first one's middle
     voxel_choice = None
     if auto:  # the scans' own size: brought to the features' scale when it is another
         scale, voxel_choice = _auto_scale(points, scans, extractor.voxel_size)
         if scale is not None:
             points = [p * scale for p in points]
+            origin = origin * scale
     load_time = time.perf_counter() - t0
     config = ScansConfig(
         all_pairs_max=options.all_pairs_max,
@@ -301,7 +310,7 @@ def _run(
     finally:
         progress.close()
     unit = 1.0 / (scale or 1.0)
-    poses = [None if T is None else _unscaled(T, unit) for T in result.poses]
+    poses = [None if T is None else _unscaled(_about(T, origin), unit) for T in result.poses]
     placed = [k for k, T in enumerate(poses) if T is not None]
     kept = [p for p in result.pairs if p.status == "kept"]
     pruned = [p for p in result.pairs if p.pruned]
@@ -326,7 +335,7 @@ def _run(
         "pairs_kept": len(kept),
         "pairs_failed": sum(p.status == "failed" for p in result.pairs),
         "edges_pruned": len(pruned),
-        "pairs": [_pair_json(p, result.poses, scans) for p in result.pairs],
+        "pairs": [_pair_json(p, result.poses, scans, origin) for p in result.pairs],
         "settings": {
             "features": extractor.name,
             "voxel_size_m": extractor.voxel_size,
@@ -348,8 +357,8 @@ def _run(
     if options.merged is not None:
         t0 = time.perf_counter()
         merged_points = (
-            merge_clouds(points, result.poses, options.merged_voxel * (scale or 1.0)) * unit
-        )
+            merge_clouds(points, result.poses, options.merged_voxel * (scale or 1.0)) + origin
+        ) * unit
         report["timings_s"]["merge"] = time.perf_counter() - t0
     report["timings_s"]["command"] = time.perf_counter() - started
 
@@ -393,6 +402,28 @@ def _auto_scale(points: list, scans: tuple[Path, ...], reference: float):
 
 def _path(name: str | None) -> Path | None:
     return None if name is None else Path(name)
+
+
+def _about_first(points: list):
+    """``(origin (3,), points)``: scans far from the origin (georeferenced: the first scan's
+    median point more than 100 of its radii out, :func:`~byoc_cli.geometry.sampling.local_frame`)
+    moved by the first scan's median point, subtracted in float64; else zeros and the scans."""
+    import numpy as np
+
+    from byoc_cli.geometry.sampling import local_frame
+
+    origin = local_frame(points[0]).origin
+    if not np.any(origin):
+        return np.zeros(3), points
+    return origin, [p - origin for p in points]
+
+
+def _about(T, origin):
+    """``T (4, 4)`` between clouds moved by ``-origin``, as a transform of the clouds where they
+    were: ``x' = R (x - o) + t + o``."""
+    T = T.copy()
+    T[:3, 3] += origin - T[:3, :3] @ origin
+    return T
 
 
 def _unscaled(T, unit: float):

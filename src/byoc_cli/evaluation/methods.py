@@ -150,6 +150,8 @@ class Method:
             if self.config.estimator == "procrustes":
                 out["num_subsets"] = self.config.num_subsets
                 out["subset_size"] = self.config.subset_size
+            elif self.config.estimator == "sc2":
+                out["inlier_threshold_m"] = self.config.inlier_factor * self.features.voxel_size
             else:
                 out["ransac_inlier_threshold_m"] = (
                     self.config.inlier_factor * self.features.voxel_size

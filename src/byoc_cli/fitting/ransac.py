@@ -116,6 +116,44 @@ class _CandidateScorer:
         return count, trunc - self.thr2 * (self.num - count)
 
 
+def refit_on_inliers(
+    p: torch.Tensor, q: torch.Tensor, T: torch.Tensor, threshold: float, iterations: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Refit unit-weight Procrustes on the inliers of ``T``, up to ``iterations`` times.
+
+    A refit is kept only if it loses no inlier; the loop stops early when fewer than 3
+    inliers are left or the inlier set no longer changes.
+
+    Args:
+        p, q: ``(K, 3)`` float64 correspondences.
+        T: ``(4, 4)`` float64 starting transform.
+        threshold: inlier distance (``|T p_i - q_i| < threshold``).
+        iterations: most refits (>= 0).
+
+    Returns:
+        ``(T (4, 4), inlier_mask (K,), residual (K,))`` of the transform kept.
+    """
+
+    def inliers_of(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        r = torch.linalg.vector_norm(p @ T[:3, :3].T + T[:3, 3] - q, dim=-1)
+        return r < threshold, r
+
+    mask, residual = inliers_of(T)
+    for _ in range(iterations):
+        count = int(mask.sum())
+        if count < 3:
+            break
+        T_new = weighted_procrustes(p[mask], q[mask], None, warn_degenerate=False)
+        mask_new, residual_new = inliers_of(T_new)
+        if int(mask_new.sum()) < count:
+            break
+        same = torch.equal(mask_new, mask)
+        T, mask, residual = T_new, mask_new, residual_new
+        if same:
+            break
+    return T, mask, residual
+
+
 @dataclass(frozen=True)
 class RansacTuning:
     """How :func:`ransac` draws and refits (its keyword arguments besides the limits).
@@ -237,25 +275,7 @@ def ransac(
         )
         best_T = torch.eye(4, dtype=torch.float64, device=device)
 
-    def inliers_of(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        r = torch.linalg.vector_norm(p @ T[:3, :3].T + T[:3, 3] - q, dim=-1)
-        return r < inlier_threshold, r
-
-    T = best_T
-    mask, residual = inliers_of(T)
-    for _ in range(refit_iterations):
-        count = int(mask.sum())
-        if count < 3:
-            break
-        T_new = weighted_procrustes(p[mask], q[mask], None, warn_degenerate=False)
-        mask_new, residual_new = inliers_of(T_new)
-        if int(mask_new.sum()) < count:
-            break
-        same = torch.equal(mask_new, mask)
-        T, mask, residual = T_new, mask_new, residual_new
-        if same:
-            break
-
+    T, mask, residual = refit_on_inliers(p, q, best_T, inlier_threshold, refit_iterations)
     num_inliers = int(mask.sum())
     score = float(residual[mask].square().mean().sqrt()) if num_inliers else math.inf
     return FitResult(

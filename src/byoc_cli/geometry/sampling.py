@@ -3,9 +3,11 @@
 What ``--voxel-size auto`` reads from the data (:mod:`byoc_cli.pipeline.scale`): the median
 distance from a point to its nearest neighbour (the sampling step of the scan), the median
 distance of the points from their coordinate-wise median (the scan's size), both in the units
-of the points, and the share of a voxel's kept points whose neighbourhood is a line (a scan
+of the points, the share of a voxel's kept points whose neighbourhood is a line (a scan
 sampled along lines, such as a spinning LiDAR's rings, shows them where the voxel is smaller
-than the gap between the lines). Shapes: points ``(N, 3)``, float; results are plain floats.
+than the gap between the lines) and the share whose neighbourhood is not a smooth surface (a
+scan of a smooth free-form object has almost none). Shapes: points ``(N, 3)``, float; results
+are plain floats.
 """
 
 from __future__ import annotations
@@ -31,6 +33,14 @@ LINE_MIN_POINTS = 4
 #: ... and is a line when its linearity ``(s1 - s2) / s1`` exceeds this (``s1 >= s2 >= s3``:
 #: the standard deviations along its principal axes)
 LINEARITY = 0.7
+#: :func:`rough_share`: the neighbourhood of a kept point is its this many nearest kept points
+#: (within :data:`ROUGH_RADIUS` voxels) ...
+ROUGH_NEIGHBOURS = 64
+ROUGH_RADIUS = 8.0
+#: ... and is rough when its surface variation ``s3^2 / (s1^2 + s2^2 + s3^2)`` exceeds this
+ROUGHNESS = 0.01
+#: query points of :func:`rough_share` (a seeded random subset)
+ROUGH_SAMPLES = 1024
 
 
 def _check(points: torch.Tensor) -> None:
@@ -200,30 +210,96 @@ def linear_share(
     Raises:
         ShapeError: ``points`` is not ``(N, 3)`` or ``voxel_size`` is not positive.
     """
-    from pykdtree.kdtree import KDTree
-
     _check(points)
     if not voxel_size > 0:
         raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
+    sd = _neighbourhood_spreads(
+        points, voxel_size, LINE_NEIGHBOURS, LINE_RADIUS, LINE_MIN_POINTS, generator, samples
+    )
+    if sd is None:
+        return 0.0
+    linearity = (sd[:, 2] - sd[:, 1]) / np.maximum(sd[:, 2], np.finfo(np.float64).tiny)
+    return float((linearity > LINEARITY).mean())
+
+
+def rough_share(
+    points: torch.Tensor,
+    voxel_size: float,
+    generator: torch.Generator | None = None,
+    samples: int = ROUGH_SAMPLES,
+) -> float:
+    """Share of the kept points of ``points (N, 3)`` at ``voxel_size`` whose neighbourhood is
+    not a smooth surface: edges, corners, clutter, noise.
+
+    The kept points are those of :func:`linear_share`; for a seeded random subset of
+    ``samples`` of them, the neighbourhood is the :data:`ROUGH_NEIGHBOURS` nearest kept points
+    (within :data:`ROUGH_RADIUS` voxels; a surface sampled at the voxel puts them within about
+    4.5), and its surface variation ``s3^2 / (s1^2 + s2^2 + s3^2)`` (``s1 >= s2 >= s3``: the
+    standard deviations along its principal axes; 0 on a plane, 1/3 for points spread alike
+    in every direction) is rough above :data:`ROUGHNESS`. Rooms, desks, 3DMatch fragments,
+    LiDAR streets and scans of boxes have edges and clutter: 25 % to 94 % of their
+    neighbourhoods are rough at the auto voxel; laser scans of smooth free-form objects at
+    most 6 % (``benchmarks/objects.py cues``).
+
+    Args:
+        points: ``(N, 3)``, finite.
+        voxel_size: the voxel, in the units of the points (> 0).
+        generator: draws the query subset (default: seed 0).
+        samples: query points at most.
+
+    Returns:
+        The share in [0, 1]; 0.0 when no query has a neighbourhood of
+        :data:`LINE_MIN_POINTS` points.
+
+    Raises:
+        ShapeError: ``points`` is not ``(N, 3)`` or ``voxel_size`` is not positive.
+    """
+    _check(points)
+    if not voxel_size > 0:
+        raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
+    sd = _neighbourhood_spreads(
+        points, voxel_size, ROUGH_NEIGHBOURS, ROUGH_RADIUS, LINE_MIN_POINTS, generator, samples
+    )
+    if sd is None:
+        return 0.0
+    var = sd**2
+    variation = var[:, 0] / np.maximum(var.sum(axis=1), np.finfo(np.float64).tiny)
+    return float((variation > ROUGHNESS).mean())
+
+
+def _neighbourhood_spreads(
+    points: torch.Tensor,
+    voxel_size: float,
+    neighbours: int,
+    radius: float,
+    min_points: int,
+    generator: torch.Generator | None,
+    samples: int,
+) -> np.ndarray | None:
+    """``(S, 3)`` the principal standard deviations (ascending: ``s3, s2, s1``) of the
+    neighbourhoods of a seeded random subset of ``samples`` kept points of ``points (N, 3)``
+    at ``voxel_size`` (the first point per voxel): the ``neighbours`` nearest kept points
+    within ``radius`` voxels (k-d tree), neighbourhoods of fewer than ``min_points`` left out;
+    None when none is left."""
+    from pykdtree.kdtree import KDTree
+
     pts = np.ascontiguousarray(points.detach().cpu().numpy(), dtype=np.float64)
     pts = pts[_first_per_voxel(pts, voxel_size)]
     n = len(pts)
-    if n < LINE_MIN_POINTS:
-        return 0.0
+    if n < min_points:
+        return None
     generator = generator or torch.Generator().manual_seed(0)
     asked = pts[torch.randperm(n, generator=generator)[: min(samples, n)].numpy()]
-    k = min(LINE_NEIGHBOURS, n)
-    dist, idx = KDTree(pts).query(asked, k=k, distance_upper_bound=LINE_RADIUS * voxel_size)
+    k = min(neighbours, n)
+    dist, idx = KDTree(pts).query(asked, k=k, distance_upper_bound=radius * voxel_size)
     found = np.isfinite(dist.reshape(len(asked), k))  # (S, k); missing neighbours: inf
     count = found.sum(axis=1)
-    shaped = count >= LINE_MIN_POINTS
+    shaped = count >= min_points
     if not shaped.any():
-        return 0.0
+        return None
     weight = found[shaped].astype(np.float64)[..., None]  # (S', k, 1)
     near = pts[np.where(found, idx.reshape(len(asked), k), 0)[shaped]]  # (S', k, 3)
     mean = (near * weight).sum(axis=1) / count[shaped, None]
     centred = (near - mean[:, None]) * weight
     cov = np.einsum("ski,skj->sij", centred, centred) / count[shaped, None, None]
-    sd = np.sqrt(np.clip(np.linalg.eigvalsh(cov), 0.0, None))  # ascending: s3, s2, s1
-    linearity = (sd[:, 2] - sd[:, 1]) / np.maximum(sd[:, 2], np.finfo(np.float64).tiny)
-    return float((linearity > LINEARITY).mean())
+    return np.sqrt(np.clip(np.linalg.eigvalsh(cov), 0.0, None))

@@ -36,6 +36,7 @@ from typing import Any
 
 from byoc_cli.errors import InputError
 from byoc_cli.io.atomic import STAGER, temp_sibling, write_problem
+from byoc_cli.io.cloudpath import cloud_file
 from byoc_cli.io.inputs import file_kind
 
 __all__ = ["OutputSet", "is_stdout"]
@@ -122,6 +123,7 @@ class OutputSet:
         for path in inputs:
             if path is None or is_stdout(path):
                 continue
+            path = cloud_file(path)  # one scan of a multi-scan file (site.e57:2): the file
             identity = _identity(Path(path))
             if identity is not None:
                 self._inputs.append((Path(path), identity))

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from byoc_cli.errors import InputError
+from byoc_cli.io.cloudpath import cloud_stem
 from byoc_cli.io.inputs import read_input
 
 __all__ = ["MAX_PAIRS", "PairEntry", "default_output_name", "read_pair_list", "shard"]
@@ -101,8 +102,9 @@ def read_pair_list(path: str | os.PathLike[str]) -> list[PairEntry]:
 
 
 def default_output_name(source: Path, target: Path) -> str:
-    """``<source-stem>__<target-stem>.txt``: a pair's T file when the list names none."""
-    return f"{source.stem}__{target.stem}.txt"
+    """``<source-stem>__<target-stem>.txt``: a pair's T file when the list names none (one
+    scan of a multi-scan file, ``site.e57:2``, is ``site_scan2``)."""
+    return f"{cloud_stem(source)}__{cloud_stem(target)}.txt"
 
 
 def shard(pairs: list[PairEntry], index: int, count: int) -> list[PairEntry]:

@@ -1,4 +1,5 @@
-"""PLY files: x, y, z of the vertices in (ASCII or binary, any numeric type), binary PLY out.
+"""PLY files: x, y, z of the vertices in (ASCII or binary, any numeric type), binary PLY out
+(with colours, normals and float scalar properties).
 
 Used through :func:`byoc_cli.io.pointcloud.read_point_cloud`, which opens the file and
 handles NaN/Inf rows; :func:`write_ply` is re-exported there.
@@ -10,6 +11,7 @@ import io
 import itertools
 import os
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
 from typing import BinaryIO
 
@@ -212,6 +214,21 @@ def coordinate_dtype(points: np.ndarray) -> np.dtype:
     return np.dtype(np.float32)
 
 
+def _checked_scalars(
+    scalars: Mapping[str, np.ndarray] | None, n: int, taken: set[str]
+) -> dict[str, np.ndarray]:
+    """``scalars`` as ``(n,)`` arrays, each name a new PLY property name."""
+    checked: dict[str, np.ndarray] = {}
+    for name, values in (scalars or {}).items():
+        values = np.asarray(values)
+        if name in taken or not name.isidentifier():
+            raise ShapeError(f"scalar name {name!r} is taken or not a plain name")
+        if values.shape != (n,) or values.dtype.kind not in "fiu":
+            raise ShapeError(f"scalar {name!r} must be real ({n},) like points, got {values.shape}")
+        checked[name] = values
+    return checked
+
+
 def write_ply(
     path: str | os.PathLike[str] | None,
     points: np.ndarray,
@@ -219,11 +236,13 @@ def write_ply(
     normals: np.ndarray | None = None,
     *,
     dtype: type[np.floating] | str | None = None,
+    scalars: Mapping[str, np.ndarray] | None = None,
 ) -> bytes | None:
     """Write a binary little-endian PLY file atomically (``path`` None: return its bytes).
 
     Vertex properties: ``x y z`` (``float`` or ``double``), then ``nx ny nz`` (same type)
-    when ``normals`` are given, then ``red green blue`` (``uchar``) when ``colors`` are.
+    when ``normals`` are given, then ``red green blue`` (``uchar``) when ``colors`` are, then
+    one ``float`` property per entry of ``scalars`` (CloudCompare shows them as scalar fields).
 
     Args:
         path: the output file (replaced atomically; nothing is left on failure), or None
@@ -233,9 +252,12 @@ def write_ply(
         normals: optional ``(N, 3)`` real.
         dtype: ``np.float32`` or ``np.float64`` for coordinates and normals; None:
             :func:`coordinate_dtype` of ``points`` (``double`` for georeferenced points).
+        scalars: optional per-point values, name -> ``(N,)`` real (names other than the
+            properties above).
 
     Raises:
-        ShapeError: wrong shapes, or a dtype other than float32/float64, or bad colors.
+        ShapeError: wrong shapes, or a dtype other than float32/float64, or bad colors, or a
+            scalar of another length or a name already used.
         InputError: the file cannot be written (missing folder, permission denied).
     """
     coord = np.dtype(coordinate_dtype(points) if dtype is None else dtype)
@@ -254,6 +276,8 @@ def write_ply(
     if colors is not None:
         colors = _as_uint8_colors(colors, n)
         fields += [(k, "u1") for k in ("red", "green", "blue")]
+    scalars = _checked_scalars(scalars, n, {name for name, _ in fields})
+    fields += [(k, "<f4") for k in scalars]
     vertex = np.empty(n, dtype=fields)
     for j, k in enumerate("xyz"):
         vertex[k] = points[:, j]
@@ -263,6 +287,8 @@ def write_ply(
     if colors is not None:
         for j, k in enumerate(("red", "green", "blue")):
             vertex[k] = colors[:, j]
+    for k, values in scalars.items():
+        vertex[k] = values
     element = plyfile.PlyElement.describe(vertex, "vertex")
     ply = plyfile.PlyData([element], text=False, byte_order="<")
     if path is None:

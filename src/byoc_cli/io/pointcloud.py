@@ -1,10 +1,13 @@
-"""Point-cloud files: PLY, NPY, PCD, XYZ/PTS in; binary PLY out.
+"""Point-cloud files: PLY, NPY, PCD, XYZ/PTS, LAS/LAZ, E57 in; binary PLY out.
 
 Everything here works on numpy arrays: a cloud is ``points (N, 3)`` float64. PLY (through
 plyfile) and NPY (through numpy) need nothing else; PCD and the XYZ family are read with
 open3d, imported lazily through :func:`byoc_cli.errors.require_open3d`. Open3D's readers
 return an empty or silently padded cloud on a missing, truncated or garbage file, so each
-file is checked here first (header, size) and the result is checked after.
+file is checked here first (header, size) and the result is checked after. LAS/LAZ
+(:mod:`byoc_cli.io.las`, laspy) and E57 (:mod:`byoc_cli.io.e57`, pye57) keep their
+georeferenced coordinates in float64; one scan of a multi-scan E57 file is named
+``site.e57:2`` (:mod:`byoc_cli.io.cloudpath`).
 
 Every problem with a file raises :class:`~byoc_cli.errors.InputError` naming the file and
 the problem in a short phrase; points with NaN or Inf coordinates are dropped and counted in
@@ -20,6 +23,7 @@ from typing import BinaryIO, NamedTuple
 import numpy as np
 
 from byoc_cli.errors import InputError, ShapeError
+from byoc_cli.io.cloudpath import parse_cloud_path
 from byoc_cli.io.inputs import check_point_count, open_input
 from byoc_cli.io.pcd import read_pcd_points, read_xyz_points
 from byoc_cli.io.ply import _CHUNK_ROWS, read_ply_general, read_ply_points, write_ply
@@ -41,6 +45,9 @@ SUPPORTED_EXTENSIONS: dict[str, str] = {
     ".xyzrgb": "xyzrgb",
     ".pts": "pts",
     ".npy": "npy",
+    ".las": "las",
+    ".laz": "laz",
+    ".e57": "e57",
 }
 _FORMATS = tuple(dict.fromkeys(SUPPORTED_EXTENSIONS.values()))
 
@@ -183,17 +190,21 @@ def read_point_cloud(path: str | os.PathLike[str], fmt: str | None = None) -> Lo
     """Read a point cloud file into ``(N, 3)`` float64, dropping NaN/Inf points.
 
     The format comes from the extension (``.ply``, ``.pcd``, ``.xyz``, ``.xyzn``,
-    ``.xyzrgb``, ``.pts``, ``.npy``; case-insensitive) unless ``fmt`` names one. PLY: ASCII
+    ``.xyzrgb``, ``.pts``, ``.npy``, ``.las``, ``.laz``, ``.e57``; case-insensitive) unless
+    ``fmt`` names one. PLY: ASCII
     or binary (either byte order), any numeric x/y/z type; other vertex properties and other
     elements (faces: a mesh gives its vertices) are ignored; binary data is read in chunks,
     so peak memory is about the result plus a few tens of MB. NPY: exactly ``(N, 3)`` of a
     float or int dtype, never unpickled. PCD and XYZ/PTS need open3d (a ``.pts`` count line
-    is optional and checked against the points found).
+    is optional and checked against the points found). LAS/LAZ need laspy (and lazrs):
+    x, y, z with the header's scales and offsets applied, in float64. E57 needs pye57: one
+    scan in the file's frame (its pose applied, invalid points left out); a file with several
+    scans is read one scan at a time, ``site.e57:2`` (0-based), and refused without one.
 
     Args:
-        path: the file.
+        path: the file, or ``file.e57:K`` for scan K of an E57 file.
         fmt: format name overriding the extension (``"ply"``, ``"pcd"``, ``"xyz"``,
-            ``"xyzn"``, ``"xyzrgb"``, ``"pts"``, ``"npy"``).
+            ``"xyzn"``, ``"xyzrgb"``, ``"pts"``, ``"npy"``, ``"las"``, ``"laz"``, ``"e57"``).
 
     Returns:
         :class:`LoadedCloud` with finite ``points (N, 3)`` float64 (N >= 1), the number of
@@ -205,7 +216,18 @@ def read_point_cloud(path: str | os.PathLike[str], fmt: str | None = None) -> Lo
         DependencyError: PCD/XYZ/PTS without a working open3d.
     """
     path = Path(path)
-    name = _format_of(path, fmt)
+    file, scan = parse_cloud_path(path)
+    name = _format_of(file, fmt)
+    if scan is not None and name != "e57":
+        raise InputError(path, f"a scan index (:{scan}) is for E57 files only")
+    if name in ("las", "laz"):
+        from byoc_cli.io.las import read_las_points
+
+        return _drop_nonfinite(read_las_points(file), path)
+    if name == "e57":
+        from byoc_cli.io.e57 import read_e57_points
+
+        return _drop_nonfinite(read_e57_points(file, scan), path)
     if name == "ply":
         points = _read_ply(path)
     elif name == "npy":

@@ -60,7 +60,7 @@ COEFFICIENTS = (
 #: the default ``--min-confidence`` of ``register`` and ``register-batch``: the highest
 #: threshold that keeps 95 % of the right results of the development set in its grouped
 #: cross-validation, with the FPFH fallback below it (precision there: 82.3 %, recall 95.2 %;
-#: see docs/registering.md)
+#: see docs/confidence.md)
 DEFAULT_MIN_CONFIDENCE = 0.45
 #: the same for FPFH features refined by the multiscale ICP (the learned features' fallback),
 #: fitted on the 115 FPFH registrations of the pairs where the learned features' confidence

@@ -25,17 +25,24 @@ class Fallback:
 
     def __init__(self, voxel_size: float | str) -> None:
         self.voxel_size = voxel_size
-        self._registrar = None
+        self._registrars: dict[tuple, Any] = {}
         self._lock = threading.Lock()
 
-    def registrar(self):
-        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread)."""
+    def registrar(self, changes: tuple[tuple[str, Any], ...] = ()):
+        """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread) of the
+        ``fpfh`` preset, with ``changes`` (``(path, value)`` pairs of
+        :meth:`~byoc_cli.pipeline.recipe.RegistrationRecipe.changed`: a smooth pair's,
+        :data:`byoc_cli.pipeline.feature_choice.SMOOTH_FPFH`)."""
+        from byoc_cli.pipeline.recipe import preset
         from byoc_cli.pipeline.registrar import Registrar
 
         with self._lock:
-            if self._registrar is None:
-                self._registrar = Registrar("fpfh", voxel_size=self.voxel_size, threads=1)
-            return self._registrar
+            if changes not in self._registrars:
+                recipe = preset("fpfh").changed(**dict(changes))
+                self._registrars[changes] = Registrar(
+                    "fpfh", voxel_size=self.voxel_size, threads=1, recipe=recipe
+                )
+            return self._registrars[changes]
 
     def second_opinion(
         self, learned: Any, first: Registration, src: Features, tgt: Features, seed: int
@@ -47,17 +54,14 @@ class Fallback:
         if src.cloud is None or tgt.cloud is None:
             return first
         start = time.perf_counter()
-        fpfh = self.registrar()
         try:
             scales = None
-            if fpfh.auto_voxel:  # the scales the learned choice read
+            if self.registrar().auto_voxel:  # the scales the learned choice read
                 scales = [
                     learned.cloud_scale(f.cloud, label)
                     for f, label in ((src, "source"), (tgt, "target"))
                 ]
-            second = register_clouds(
-                fpfh, (src.cloud, tgt.cloud), scales, refine="multiscale", seed=seed
-            )
+            second = self.register((src.cloud, tgt.cloud), scales, seed)
         except RegistrationError:
             second = None
         seconds = time.perf_counter() - start
@@ -75,6 +79,25 @@ class Fallback:
         T = second.T_tgt_src.copy()
         T[:3, 3] /= src.scale
         return second._replace(T_tgt_src=T, timings=timings, fallback=note)
+
+    def register(
+        self,
+        clouds: tuple[np.ndarray, np.ndarray],
+        scales: list,
+        seed: int,
+        changes: tuple[tuple[str, Any], ...] = (),
+    ) -> Registration:
+        """FPFH's registration of ``clouds`` (``(N, 3)`` in metres), refined by the multiscale
+        ICP, from the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` that the learned
+        registrar measured (read only with an auto voxel; None otherwise), by the registrar of
+        ``changes`` (:meth:`registrar`); T in metres.
+
+        Raises:
+            RegistrationError: FPFH cannot register them.
+        """
+        fpfh = self.registrar(changes)
+        scales = scales if fpfh.auto_voxel else None
+        return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed)
 
 
 def register_clouds(

@@ -87,6 +87,17 @@ class Featurizer:
         scale = self._scales.get(points, None, lambda: self.measure(points, label))
         return scale._replace(label=label)
 
+    def rough_share(self, points: np.ndarray, voxel_size: float) -> float:
+        """:func:`~byoc_cli.geometry.sampling.rough_share` of ``points (N, 3)`` at
+        ``voxel_size``, once per array and voxel while among the most recently measured."""
+        import torch
+
+        from byoc_cli.geometry.sampling import rough_share
+
+        return self._scales.get(
+            points, ("rough", voxel_size), lambda: rough_share(torch.from_numpy(points), voxel_size)
+        )
+
     def remember_scale(self, points: np.ndarray, scale: CloudScale) -> None:
         """Keep ``scale`` (measured elsewhere) as the :meth:`cloud_scale` of ``points``."""
         self._scales.get(points, None, lambda: scale)

@@ -92,12 +92,14 @@ def load_cloud(
     depth_scale: float | None = None,
     scale: float | None = None,
 ) -> np.ndarray:
-    """Read a point cloud (.ply, .pcd, .xyz, .pts, .npy) or a depth image as ``(N, 3)`` metres.
+    """Read a point cloud (.ply, .pcd, .xyz, .pts, .npy, .las, .laz, .e57) or a depth image as
+    ``(N, 3)`` metres.
 
-    Points with NaN/Inf coordinates are dropped (with a warning).
+    Points with NaN/Inf coordinates are dropped (with a warning). LAS/LAZ and E57 keep their
+    georeferenced coordinates in float64 (:func:`byoc_cli.io.read_point_cloud`).
 
     Args:
-        path: the file.
+        path: the file, or ``file.e57:K`` for scan K (0-based) of a multi-scan E57 file.
         intrinsics: for depth images (.png, .tif): Open3D intrinsics JSON or a 3x3 text matrix.
         depth_scale: depth-image units per metre; None: the convention of the dataset layout
             around the file, else 1000 (:func:`depth_scale_of`).

@@ -113,8 +113,8 @@ class FittingRecipe:
     """The robust fit.
 
     Attributes:
-        estimator: ``"ransac"`` or ``"procrustes"`` (randomized weighted Procrustes, the
-            paper's section 3.1).
+        estimator: ``"ransac"``, ``"procrustes"`` (randomized weighted Procrustes, the
+            paper's section 3.1) or ``"sc2"`` (second-order spatial compatibility).
         inlier_factor: inlier threshold as a multiple of the voxel (RANSAC's threshold, and
             that of the reported inliers and overlap).
         ransac_iterations, ransac_confidence: RANSAC's limits.
@@ -226,7 +226,7 @@ PRESETS: dict[str, RegistrationRecipe] = {
     # coarse-to-fine point-to-plane ICP on the full clouds that holds sliding directions
     # (benchmarks/estimators.py): randomized Procrustes registered a fifth of the development
     # fragments that RANSAC did with the same features; plain ICP slid along the planes of
-    # tum_fr3_cabinet. Below the gate, FPFH gives a second opinion (docs/registering.md).
+    # tum_fr3_cabinet. Below the gate, FPFH gives a second opinion (docs/confidence.md).
     "byoc": RegistrationRecipe(
         FeaturesRecipe("byoc"),
         MatchingRecipe(max_points=5000, correspondences=2500),

@@ -22,8 +22,8 @@ if TYPE_CHECKING:
 
 #: feature types
 FEATURE_KINDS = ("byoc", "fpfh")
-#: robust estimators
-ESTIMATORS = ("procrustes", "ransac")
+#: robust estimators (``sc2``: second-order spatial compatibility, fitting/compatibility.py)
+ESTIMATORS = ("procrustes", "ransac", "sc2")
 #: refinements after the robust fit
 REFINEMENTS = ("none", "multiscale")
 #: what runs below the gate

@@ -51,7 +51,8 @@ class RegisterConfig:
         num_correspondences: top k ratio-test matches kept per direction (2k in all).
         max_points: size of the seeded random subset of kept points per cloud that enters
             matching (0 = all).
-        estimator: ``"procrustes"`` (randomized Procrustes, the paper's) or ``"ransac"``.
+        estimator: ``"procrustes"`` (randomized Procrustes, the paper's), ``"ransac"`` or
+            ``"sc2"`` (second-order spatial compatibility).
         num_subsets, subset_size: randomized Procrustes' candidates and their size.
         inlier_factor: inlier threshold as a multiple of the voxel size (RANSAC's threshold,
             and the threshold of the reported inliers and overlap).

@@ -163,7 +163,8 @@ class Registrar(Featurizer):
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale; with an
                 auto voxel, clouds extracted one at a time are extracted again at the pair's).
-            estimator: ``"ransac"`` or ``"procrustes"``; None (every argument): the recipe's.
+            estimator: ``"ransac"``, ``"procrustes"`` or ``"sc2"``; None (every argument): the
+                recipe's.
             refine: ``"none"`` or ``"multiscale"`` (runs on ``Features.cloud`` where both
                 have one).
             max_points: seeded random subset per cloud that enters matching (0 = all).
@@ -174,16 +175,31 @@ class Registrar(Featurizer):
             RegistrationError: no correspondences, or no transform could be fitted.
             ValueError: the two clouds' features do not go together.
         """
+        settings = {"estimator": estimator, "refine": refine, "max_points": max_points}
+        settings.update(num_correspondences=num_correspondences, seed=seed)
+        registration = self.match_alone(src, tgt, **settings)
+        if self.fallback and registration.confidence < self.fallback_below:
+            # the recipe of the run (its gate ran the fallback), whichever result is kept
+            recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
+            kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
+            passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
+            return kept._replace(recipe=registration.recipe, passed=passed)
+        return registration
+
+    def match_alone(self, src: Features, tgt: Features, **settings: Any) -> Registration:
+        """:meth:`match` without the fallback's second opinion, whatever the confidence (for a
+        smooth pair the learned features are the second opinion:
+        :mod:`byoc_cli.pipeline.feature_choice`); ``settings``: :meth:`match`'s keywords."""
         src, tgt = same_voxel(self, src, tgt)
         if (src.features, src.voxel_size, src.scale) != (tgt.features, tgt.voxel_size, tgt.scale):
             raise ValueError("src and tgt must have the same features, voxel size and scale")
-        recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
+        recipe = self.recipe_of(**settings)
         full = None
         if src.cloud is not None and tgt.cloud is not None:
             full = (self._refine_cloud(src), self._refine_cloud(tgt))
         # on a worker (register, register-batch): pieces side by side with an idle worker
         parallel = side_by_side(self.executor()) if in_worker() and self.threads > 1 else None
-        registration = match_pair(
+        return match_pair(
             src,
             tgt,
             recipe,
@@ -193,12 +209,12 @@ class Registrar(Featurizer):
             parallel=parallel,
             scan_lines=scan_lines(self, src, tgt),
         )
-        if self.fallback and registration.confidence < self.fallback_below:
-            # the recipe of the run (its gate ran the fallback), whichever result is kept
-            kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
-            passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
-            return kept._replace(recipe=registration.recipe, passed=passed)
-        return registration
+
+    def fpfh_registration(self, clouds: tuple, scales: list, seed=None, changes=()):
+        """:meth:`Fallback.register <byoc_cli.pipeline.fallback.Fallback.register>` of
+        ``clouds`` (seed None: the recipe's): FPFH's registration, T in metres."""
+        seed = self.recipe.seed if seed is None else seed
+        return self._fallback.register(clouds, scales, seed, changes)
 
     def register(
         self,

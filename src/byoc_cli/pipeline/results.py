@@ -83,6 +83,12 @@ class Registration(NamedTuple):
             ``trust_region`` and ``inside_trust_region``; with ``init_mode="global"`` also
             ``mode`` and ``check`` (:func:`byoc_cli.pipeline.sequence.register_from_init`).
             None without one.
+        features_choice: with learned features, an auto voxel and the FPFH fallback, which
+            features the pair started with and why
+            (:meth:`byoc_cli.pipeline.feature_choice.FeaturesChoice.as_dict`): ``"fpfh"`` for a
+            smooth pair (when the learned features ran as its second opinion, ``fallback``
+            says what they reached: ``features: "byoc"``, ``first_confidence``: FPFH's);
+            None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -110,3 +116,4 @@ class Registration(NamedTuple):
     recipe: dict | None = None
     path: str = "global"
     init: dict | None = None
+    features_choice: dict | None = None

@@ -9,6 +9,12 @@ from typing import Any
 import numpy as np
 
 from byoc_cli.pipeline.local import LocalPair, check_global, register_local
+from byoc_cli.pipeline.feature_choice import (
+    LEARNED_SECOND_OPINION,
+    applies,
+    features_for,
+    smooth_first,
+)
 from byoc_cli.pipeline.memo import InPlace, all_done
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.threads import in_worker
@@ -28,9 +34,14 @@ def register_pair(
         load: ``intrinsics`` and ``depth_scale`` for depth-image files.
         settings: the keywords of ``Registrar.match``.
 
+    With learned features, an auto voxel and the FPFH fallback, a pair of smooth clouds is
+    registered with FPFH instead (:mod:`byoc_cli.pipeline.feature_choice`): the learned
+    features are not extracted.
+
     Returns:
         the registration; its ``timings`` add ``load``, ``scale``, ``features_src``,
-        ``features_tgt``, ``prepare_src``, ``prepare_tgt`` and ``total`` (wall time).
+        ``features_tgt``, ``prepare_src``, ``prepare_tgt`` (when the learned features ran),
+        ``first`` (when FPFH went first) and ``total`` (wall time).
     """
     start = time.perf_counter()
     refine = settings.get("refine") or made.recipe.refinement.method
@@ -44,39 +55,57 @@ def register_pair(
         job.result() for job in all_done(read)
     )
     t_scale = time.perf_counter()
-    choice, voxels = None, [(None, None, 1.0)] * 2
+    choice, voxels, picked = None, [(None, None, 1.0)] * 2, None
     if made.auto_voxel:
         choice = made.voxel_for(src_scale, tgt_scale)
         voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
+        if applies(made):
+            picked = features_for(made, (src_points, tgt_points), choice.voxel_size)
     t_choice = time.perf_counter() - t_scale
-    jobs = [
-        pool.submit(
-            _prepared_features,
-            made,
-            points,
-            name,
-            scale,
-            voxels[k],
-            multiscale and k == 0,
-            multiscale and k == 1,
-        )
-        for k, (points, name) in enumerate(((src_points, src_name), (tgt_points, tgt_name)))
-    ]
-    (src, f_src), (tgt, f_tgt) = (job.result() for job in all_done(jobs))
-    result = pool.submit(made.match, src, tgt, **settings).result()
+    steps: dict[str, float] = {}
+
+    def learned(second_opinion: bool = True) -> Registration:
+        """The learned pass: both clouds' features and refinement levels side by side, then
+        :meth:`~byoc_cli.pipeline.registrar.Registrar.match`."""
+        jobs = [
+            pool.submit(
+                _prepared_features,
+                made,
+                points,
+                name,
+                scale,
+                voxels[k],
+                multiscale and k == 0,
+                multiscale and k == 1,
+            )
+            for k, (points, name) in enumerate(((src_points, src_name), (tgt_points, tgt_name)))
+        ]
+        (src, f_src), (tgt, f_tgt) = (job.result() for job in all_done(jobs))
+        steps.update(features_src=f_src["features"], features_tgt=f_tgt["features"])
+        steps.update(prepare_src=f_src["prepare"], prepare_tgt=f_tgt["prepare"])
+        match = made.match if second_opinion else made.match_alone
+        return pool.submit(match, src, tgt, **settings).result()
+
+    if picked is not None and picked.first == "fpfh":
+        seed = settings.get("seed")
+        clouds = (src_points, tgt_points)
+        second = (lambda: learned(False)) if LEARNED_SECOND_OPINION else None
+        result = smooth_first(made, clouds, [src_scale, tgt_scale], second, picked, scale, seed)
+    else:
+        result = learned()
+        picked = None if picked is None else picked.as_dict()
+        voxel_choice = None if choice is None else choice.as_dict()
+        result = result._replace(features_choice=picked, voxel_choice=voxel_choice)
     timings = {
         "load": t_src["load"] + t_tgt["load"],
         "scale": t_src["scale"] + t_tgt["scale"] + t_choice,
-        "features_src": f_src["features"],
-        "features_tgt": f_tgt["features"],
-        "prepare_src": f_src["prepare"],
-        "prepare_tgt": f_tgt["prepare"],
+        **steps,
         **result.timings,
         "total": time.perf_counter() - start,
     }
-    return result._replace(
-        timings=timings, voxel_choice=None if choice is None else choice.as_dict()
-    )
+    if result.voxel_choice is None and choice is not None:  # the learned pass's (FPFH's: its own)
+        result = result._replace(voxel_choice=choice.as_dict())
+    return result._replace(timings=timings)
 
 
 def register_from_init(

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.fitting import randomized_procrustes, ransac
+from byoc_cli.fitting import randomized_procrustes, ransac, spatial_compatibility
 from byoc_cli.pipeline.refine import Refinement, measure_fit, refine_multiscale
 from byoc_cli.pipeline.restarts import restart_refinement
 from byoc_cli.pipeline.verdict import NO_RESTARTS, Judge, Verdict
@@ -125,6 +125,8 @@ def fit_robust(
             subset_size=config.subset_size,
             generator=generator,
         )
+    if config.estimator == "sc2":
+        return spatial_compatibility(p, q, threshold, weight=w, generator=generator)
     return ransac(
         p,
         q,

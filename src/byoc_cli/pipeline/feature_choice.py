@@ -1,0 +1,162 @@
+"""Which features a pair starts with, read from the clouds before any is extracted.
+
+The learned features were trained on depth frames of rooms and desks: they match edges,
+corners and clutter. Laser scans of smooth free-form objects (no table, curved surfaces) have
+almost none, and there the learned pass fails where FPFH, run as the fallback below the gate,
+registers the pair: such a pair paid for two registrations. At the pair's auto voxel
+(:mod:`byoc_cli.pipeline.scale`) the share of a cloud's neighbourhoods that are not smooth
+surfaces (:func:`~byoc_cli.geometry.sampling.rough_share`) tells them apart: 25 % to 94 % on
+rooms, desks, 3DMatch fragments, LiDAR streets and scans of boxes on a table, at most 6 % on
+the laser scans of smooth objects of ``benchmarks/objects.py`` (``docs/objects.md``). A
+noise-free render of a room of plain boxes is smooth too: FPFH goes first there as well, with
+the learned features below the gate.
+
+When both clouds of a pair are smooth (at most :data:`SMOOTH_SHARE` rough), FPFH registers it
+(the fallback's preset with the changes of :data:`SMOOTH_FPFH`) and the learned features are
+skipped (:func:`smooth_first`). Measured on the smooth pairs of ``benchmarks/objects.py``
+(docs/objects.md): as FPFH's second opinion below the gate the learned features registered
+none of 64 pairs that FPFH had not (:data:`LEARNED_SECOND_OPINION` turns them back on); the
+refinement's restarts came back to the result wherever its confidence before them was above
+0.3 (on rooms they do not: a 3DLoMatch result at 0.89 fell to 0.22), so they are left out; and
+3000 points per cloud into matching instead of FPFH's 10000 registered 64 of 96 pairs instead
+of 60, none wrong instead of 2, in 21 % less time. Anywhere else the learned features go
+first, as before. The report's ``features_choice`` says which went first and why.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from byoc_cli.errors import RegistrationError
+from byoc_cli.pipeline.results import Registration
+
+#: a pair whose clouds both have at most this share of rough neighbourhoods at its voxel
+#: starts with FPFH (between the 6 % of smooth objects and the 25 % of a cabinet's frame)
+SMOOTH_SHARE = 0.125
+#: a smooth pair's learned features run as the second opinion when FPFH's confidence is
+#: below the gate (False: skipped; measured in docs/objects.md)
+LEARNED_SECOND_OPINION = False
+#: a smooth pair's FPFH recipe: the ``fpfh`` preset changed so
+#: (:meth:`~byoc_cli.pipeline.recipe.RegistrationRecipe.changed` paths)
+SMOOTH_FPFH = (("refinement__restarts", False), ("matching__max_points", 3000))
+
+
+class FeaturesChoice(NamedTuple):
+    """Which features a pair starts with and why.
+
+    Attributes:
+        first: ``"byoc"`` or ``"fpfh"``.
+        rough_share: per cloud, the share of its neighbourhoods that are not smooth surfaces
+            at the pair's voxel (:func:`~byoc_cli.geometry.sampling.rough_share`).
+        reason: one sentence for reports and logs.
+    """
+
+    first: str
+    rough_share: tuple[float, ...]
+    reason: str
+
+    def as_dict(self) -> dict:
+        """JSON-ready: ``first``, ``rough_share``, ``smooth_share`` (the threshold), ``reason``."""
+        return {
+            "first": self.first,
+            "rough_share": list(self.rough_share),
+            "smooth_share": SMOOTH_SHARE,
+            "reason": self.reason,
+        }
+
+
+def choose_features(rough: Sequence[float]) -> FeaturesChoice:
+    """The features a pair whose clouds have ``rough`` shares of rough neighbourhoods starts
+    with: ``"fpfh"`` when every one is at most :data:`SMOOTH_SHARE`, else ``"byoc"``."""
+    rough = tuple(float(r) for r in rough)
+    shares = ", ".join(f"{100 * r:.0f} %" for r in rough)
+    if max(rough) <= SMOOTH_SHARE:
+        why = (
+            f"smooth surfaces ({shares} of the neighbourhoods rough, at most "
+            f"{100 * SMOOTH_SHARE:g} %): FPFH features (3000 points, no restarts)"
+        )
+        return FeaturesChoice("fpfh", rough, why)
+    why = f"edges and clutter ({shares} of the neighbourhoods rough): the learned features first"
+    return FeaturesChoice("byoc", rough, why)
+
+
+def applies(made: Any) -> bool:
+    """Whether a registrar ``made`` chooses the features per pair: learned features with an
+    auto voxel and the FPFH fallback (``--fallback none`` or a voxel given keeps them)."""
+    return made.features == "byoc" and made.auto_voxel and made.fallback == "fpfh"
+
+
+def features_for(made: Any, clouds: Sequence[np.ndarray], voxel_size: float) -> FeaturesChoice:
+    """:func:`choose_features` of the ``clouds`` (``(N, 3)`` arrays in metres) at the pair's
+    ``voxel_size``, each cloud's share measured once per voxel by ``made``
+    (:meth:`~byoc_cli.pipeline.featurizer.Featurizer.rough_share`)."""
+    return choose_features([made.rough_share(points, voxel_size) for points in clouds])
+
+
+def smooth_first(
+    made: Any,
+    clouds: tuple[np.ndarray, np.ndarray],
+    scales: list,
+    learned: Callable[[], Registration] | None,
+    choice: FeaturesChoice,
+    scale: float | None,
+    seed: int | None = None,
+) -> Registration:
+    """FPFH for a smooth pair (its recipe changed by :data:`SMOOTH_FPFH`), the learned
+    features as the second opinion when asked.
+
+    Args:
+        made: the learned :class:`~byoc_cli.pipeline.registrar.Registrar` (its fallback's
+            registrar runs FPFH, its gate decides).
+        clouds: source and target ``(N, 3)`` in metres.
+        scales: their :class:`~byoc_cli.pipeline.scale.CloudScale`.
+        learned: the learned registration of the pair without its own fallback, called only
+            when FPFH's confidence is below the gate; None: never.
+        choice: the :class:`FeaturesChoice` that sent the pair here (the report's).
+        scale: the factor the learned registration's translation is in (the target's
+            factor to metres; None: 1): FPFH's is divided by it.
+        seed: seeds FPFH's random choices (None: the recipe's).
+
+    Returns:
+        FPFH's registration when it passes the gate or no ``learned`` is given; else the
+        more confident of the two. ``features_choice`` says why FPFH went first;
+        ``fallback`` (when the learned features ran) says what they reached;
+        ``timings["first"]`` holds FPFH's seconds; ``passed`` is by ``made``'s gate.
+
+    Raises:
+        RegistrationError: neither could register the pair.
+    """
+    start = time.perf_counter()
+    try:
+        first = made.fpfh_registration(clouds, scales, seed, SMOOTH_FPFH)
+        T = first.T_tgt_src.copy()
+        T[:3, 3] /= 1.0 if scale is None else scale
+        first = first._replace(T_tgt_src=T)
+    except RegistrationError:
+        if learned is None:
+            raise
+        first = None
+    seconds = time.perf_counter() - start
+    picked = choice.as_dict()
+    if first is not None and (learned is None or first.confidence >= made.fallback_below):
+        timings = {**first.timings, "first": seconds}
+        passed = first.confidence >= made.fallback_below
+        return first._replace(timings=timings, features_choice=picked, passed=passed)
+    second_start = time.perf_counter()
+    second = learned()  # raises when it cannot register either (and FPFH could not)
+    used = first is None or second.confidence > first.confidence
+    note = {
+        "features": "byoc",
+        "used": used,
+        "first_confidence": None if first is None else first.confidence,
+        "confidence": second.confidence,
+        "seconds": time.perf_counter() - second_start,
+    }
+    kept = second if used else first
+    timings = {**kept.timings, "first": seconds}
+    passed = kept.confidence >= made.fallback_below
+    return kept._replace(timings=timings, fallback=note, features_choice=picked, passed=passed)

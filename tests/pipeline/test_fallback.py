@@ -1,0 +1,68 @@
+"""The FPFH second opinion below the gate (pipeline/fallback.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from byoc_cli.pipeline.registrar import Registrar
+from tests.pipeline._clouds import cube, moved
+
+
+def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
+    src_mm = cube(1) * 1000
+    tgt, T = moved(cube(1))
+    tgt_mm = tgt * 1000
+    plain = Registrar(fallback=None).register(src_mm, tgt_mm, seed=1)
+    assert plain.fallback is None
+    never = Registrar(fallback="fpfh", fallback_below=0.0).register(src_mm, tgt_mm, seed=1)
+    assert never.fallback is None and np.array_equal(never.T_tgt_src, plain.T_tgt_src)
+    both = Registrar(fallback="fpfh", fallback_below=1.0).register(src_mm, tgt_mm, seed=1)
+    note = both.fallback
+    assert note["features"] == "fpfh" and note["learned_confidence"] == plain.confidence
+    assert note["confidence"] is not None and note["seconds"] > 0
+    assert both.confidence == max(plain.confidence, note["confidence"])
+    assert both.features == ("fpfh" if note["used"] else "byoc")
+    assert note["used"] == (note["confidence"] > plain.confidence)
+    assert both.timings["fallback"] == note["seconds"] and "fallback" not in plain.timings
+    assert np.abs(both.T_tgt_src[:3, 3] - 1000 * T[:3, 3]).max() < 50  # mm, either way
+    with pytest.raises(ValueError, match="fallback"):
+        Registrar("fpfh", fallback="fpfh")
+
+
+def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monkeypatch):
+    import byoc_cli.pipeline.scale as scale
+
+    a, b = cube(1), moved(cube(1))[0]
+    registrar = Registrar(fallback="fpfh", fallback_below=1.0)  # always runs
+    measured = []
+    monkeypatch.setattr(
+        scale,
+        "measure",
+        lambda p, label="cloud", f=scale.measure: measured.append(label) or f(p, label),
+    )
+    choice = registrar.choose_voxel(a, b)  # the pair's voxel, as register-batch reads it
+    assert len(measured) == 2 and choice.keep_of(0) == choice.keep_of(1) == 1.0
+    fa, fb = (
+        registrar.extract_points(p, 1.0, "cloud", choice.voxel_size, choice.refine_voxel)
+        for p in (a, b)
+    )
+    extracted = []
+    real = Registrar.extract_points
+    monkeypatch.setattr(
+        Registrar,
+        "extract_points",
+        lambda self, *args, **kw: extracted.append(self.features) or real(self, *args, **kw),
+    )
+    pairs = [(fa, fb), (fb, fa), (fa, fb)]
+    got = [registrar.match(s, t, seed=2) for s, t in pairs]
+    assert [r.fallback is not None for r in got] == [True] * 3
+    assert len(measured) == 4  # each cloud once more, by the fallback, then kept
+    assert extracted.count("fpfh") == 2  # each cloud's FPFH features once
+    assert got[2].T_tgt_src.tobytes() == got[0].T_tgt_src.tobytes()
+    fresh = Registrar("fpfh")
+    for (s, t), result in zip(pairs[:2], got, strict=False):
+        alone = fresh.register(s.cloud, t.cloud, scale=1.0, refine="multiscale", seed=2)
+        assert result.fallback["confidence"] == alone.confidence
+        if result.fallback["used"]:
+            assert result.T_tgt_src.tobytes() == alone.T_tgt_src.tobytes()
