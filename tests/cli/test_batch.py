@@ -336,6 +336,8 @@ def test_an_init_column_that_is_an_output_or_an_extra_column_is_refused(runner, 
     listing.write_text("a.ply b.ply T.txt init.txt\nc.ply d.ply init.txt\n")
     res = runner.invoke(cli, ["register-batch", str(listing)])
     assert res.exit_code == 1 and "init.txt" in res.stderr  # an output over an input
+
+
 @pytest.mark.slow
 def test_a_smooth_pair_records_why_fpfh_registered_it(tmp_path):
     from byoc_cli.io import write_ply

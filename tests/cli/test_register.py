@@ -663,6 +663,8 @@ def test_init_options_are_checked_as_usage_errors(runner, tmp_path):
     # -o may not overwrite the initial pose it reads
     res = runner.invoke(cli, [*with_init, "-o", str(tmp_path / "init.txt")])
     assert res.exit_code != 0 and read_transform(tmp_path / "init.txt") is not None
+
+
 @pytest.mark.slow
 def test_a_smooth_pair_is_registered_with_fpfh_and_the_report_says_why(runner, tmp_path):
     write_ply(tmp_path / "a.ply", smooth_scan(0))

@@ -8,13 +8,13 @@ from typing import Any
 
 import numpy as np
 
-from byoc_cli.pipeline.local import LocalPair, check_global, register_local
 from byoc_cli.pipeline.feature_choice import (
     LEARNED_SECOND_OPINION,
     applies,
     features_for,
     smooth_first,
 )
+from byoc_cli.pipeline.local import LocalPair, check_global, register_local
 from byoc_cli.pipeline.memo import InPlace, all_done
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.threads import in_worker
