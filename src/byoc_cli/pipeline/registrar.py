@@ -25,11 +25,10 @@ from typing import TYPE_CHECKING, Any
 from byoc_cli.pipeline.engine_recipe import FROM_RECIPE, registrar_recipe, resolve_device
 from byoc_cli.pipeline.fallback import Fallback
 from byoc_cli.pipeline.featurizer import Featurizer
-from byoc_cli.pipeline.local import InitialPose
 from byoc_cli.pipeline.memo import RefineClouds
 from byoc_cli.pipeline.pair import match_pair, same_voxel, scan_lines
 from byoc_cli.pipeline.results import Features, Registration
-from byoc_cli.pipeline.sequence import register_from_init, register_pair
+from byoc_cli.pipeline.sequence import register_either
 from byoc_cli.threads import in_worker, side_by_side
 
 if TYPE_CHECKING:
@@ -111,15 +110,14 @@ class Registrar(Featurizer):
         as a source, a target or both (else :meth:`match` builds them); nothing without a
         cloud. Threads may build different levels of one cloud at once."""
         if feats.cloud is not None:
-            self._refine_cloud(feats).prepare(source=source, target=target, levels=levels)
+            self.refinement_cloud(feats).prepare(source=source, target=target, levels=levels)
 
-    def _refine_cloud(self, feats: Features):
-        """The :class:`~byoc_cli.pipeline.refine_levels.RefineCloud` of ``feats.cloud``."""
-        return self.refinement_cloud(feats.cloud, feats.refine_voxel or feats.voxel_size)
-
-    def refinement_cloud(self, points, voxel: float, within: Any = None):
+    def refinement_cloud(self, points, voxel: float | None = None, within: Any = None):
         """The ``RefineCloud`` of ``points (N, 3)`` (local frame) at ``voxel``, kept for later
-        pairs; ``within``: the one whose finest averages make it (the local path's coarse pass)."""
+        pairs; ``points`` a :class:`Features`: its cloud at its refinement voxel; ``within``:
+        the one whose finest averages make it (the local path's coarse pass)."""
+        if isinstance(points, Features):
+            points, voxel = points.cloud, points.refine_voxel or points.voxel_size
         if within is not None:
             return self._coarse.get(points, voxel, lambda: within.average(0), pyramid=True)
         return self._refine.get(points, voxel, lambda: self.frame(points).local(points))
@@ -196,7 +194,7 @@ class Registrar(Featurizer):
         recipe = self.recipe_of(**settings)
         full = None
         if src.cloud is not None and tgt.cloud is not None:
-            full = (self._refine_cloud(src), self._refine_cloud(tgt))
+            full = (self.refinement_cloud(src), self.refinement_cloud(tgt))
         # on a worker (register, register-batch): pieces side by side with an idle worker
         parallel = side_by_side(self.executor()) if in_worker() and self.threads > 1 else None
         return match_pair(
@@ -228,28 +226,14 @@ class Registrar(Featurizer):
         **settings: Any,
     ) -> Registration:
         """Read both clouds, extract their features and :meth:`match` them
-        (:func:`~byoc_cli.pipeline.sequence.register_pair`, the sequence of a pair).
+        (:func:`~byoc_cli.pipeline.sequence.register_pair`); from ``init``, a ``(4, 4)`` guess
+        of ``T_tgt_src`` (input units), the local registration
+        (:func:`~byoc_cli.pipeline.sequence.register_either`).
 
         ``source`` and ``target`` are arrays or files as for :meth:`extract`, ``scale``,
         ``intrinsics`` and ``depth_scale`` say how to read them; ``settings`` are
-        :meth:`match`'s keywords. ``timings`` also hold ``load`` (both reads), ``scale``,
-        ``features_src``, ``features_tgt``, ``prepare_src``, ``prepare_tgt`` (multiscale
-        levels) and ``total`` (wall time).
-
-        ``init``: a ``(4, 4)`` guess of ``T_tgt_src`` in the input's units: the local
-        registration from it (:mod:`byoc_cli.pipeline.local`) within ``max_correction`` (in
-        ``settings``: ``(degrees, distance in input units or None)``); ``init_mode="global"``
-        checks the global one against it (:func:`~byoc_cli.pipeline.sequence.register_from_init`).
-
-        Raises:
-            ValueError: a bad ``init``, ``max_correction`` or ``init_mode``, or either of the
-                latter without ``init`` (:meth:`~byoc_cli.pipeline.local.InitialPose.of`).
-        """
+        :meth:`match`'s keywords, ``max_correction`` and ``init_mode``. ``timings`` also hold
+        ``load``, ``scale``, ``features_src``, ``features_tgt``, ``prepare_src``,
+        ``prepare_tgt`` (multiscale levels) and ``total`` (wall time)."""
         load = {"intrinsics": intrinsics, "depth_scale": depth_scale}
-        trust, mode = settings.pop("max_correction", None), settings.pop("init_mode", "local")
-        if init is None and (trust is not None or mode != "local"):
-            raise ValueError("max_correction and init_mode go with an init")
-        if init is None:
-            return register_pair(self, (source, target), scale, load, settings)
-        guess = InitialPose.of(init, trust, mode)
-        return register_from_init(self, (source, target), scale, load, settings, guess)
+        return register_either(self, (source, target), scale, load, settings, init)

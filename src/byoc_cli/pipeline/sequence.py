@@ -14,7 +14,7 @@ from byoc_cli.pipeline.feature_choice import (
     features_for,
     smooth_first,
 )
-from byoc_cli.pipeline.local import LocalPair, check_global, register_local
+from byoc_cli.pipeline.local import InitialPose, LocalPair, check_global, register_local
 from byoc_cli.pipeline.memo import InPlace, all_done
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.threads import in_worker
@@ -106,6 +106,27 @@ def register_pair(
     if result.voxel_choice is None and choice is not None:  # the learned pass's (FPFH's: its own)
         result = result._replace(voxel_choice=choice.as_dict())
     return result._replace(timings=timings)
+
+
+def register_either(
+    made: Any, clouds: tuple[Any, Any], scale: float | None, load: dict, settings: dict, init
+) -> Registration:
+    """:func:`register_pair` without ``init``; with a ``(4, 4)`` guess of ``T_tgt_src`` (input
+    units), :func:`register_from_init` of it, within ``settings``' ``max_correction``
+    (``(degrees, distance in input units or None)``) in its ``init_mode`` (the rest of
+    ``settings``: :meth:`~byoc_cli.pipeline.registrar.Registrar.match`'s keywords).
+
+    Raises:
+        ValueError: a bad ``init``, ``max_correction`` or ``init_mode``, or either of the
+            latter without ``init`` (:meth:`~byoc_cli.pipeline.local.InitialPose.of`).
+    """
+    trust, mode = settings.pop("max_correction", None), settings.pop("init_mode", "local")
+    if init is None and (trust is not None or mode != "local"):
+        raise ValueError("max_correction and init_mode go with an init")
+    if init is None:
+        return register_pair(made, clouds, scale, load, settings)
+    guess = InitialPose.of(init, trust, mode)
+    return register_from_init(made, clouds, scale, load, settings, guess)
 
 
 def register_from_init(
