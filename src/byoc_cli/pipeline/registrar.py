@@ -106,9 +106,8 @@ class Registrar(Featurizer):
     def prepare_refinement(
         self, feats: Features, source: bool, target: bool, levels: Any = None
     ) -> None:
-        """Build the multiscale-refinement ``levels`` (default: all) of ``feats.cloud`` now,
-        as a source, a target or both (else :meth:`match` builds them); nothing without a
-        cloud. Threads may build different levels of one cloud at once."""
+        """Build the refinement ``levels`` (default: all) of ``feats.cloud`` as a source, a
+        target or both now, not in :meth:`match` (threads may build different levels at once)."""
         if feats.cloud is not None:
             self.refinement_cloud(feats).prepare(source=source, target=target, levels=levels)
 
