@@ -39,7 +39,9 @@ def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monke
     monkeypatch.setattr(
         scale,
         "measure",
-        lambda p, label="cloud", f=scale.measure: measured.append(label) or f(p, label),
+        lambda p, label="cloud", lines=True, f=scale.measure: (
+            measured.append(label) or f(p, label, lines)
+        ),
     )
     choice = registrar.choose_voxel(a, b)  # the pair's voxel, as register-batch reads it
     assert len(measured) == 2 and choice.keep_of(0) == choice.keep_of(1) == 1.0

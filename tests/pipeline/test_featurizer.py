@@ -42,11 +42,21 @@ def test_a_clouds_scale_and_frame_are_computed_once_per_array(monkeypatch):
 
     made, calls = Registrar("fpfh"), []
     real = scale.measure
-    monkeypatch.setattr(scale, "measure", lambda p, label="c": calls.append(label) or real(p))
+    monkeypatch.setattr(
+        scale,
+        "measure",
+        lambda p, label="c", lines=True: calls.append(label) or real(p, lines=lines),
+    )
+    lines = []
+    real_lines = scale.scan_line_voxel
+    monkeypatch.setattr(scale, "scan_line_voxel", lambda *a: lines.append(1) or real_lines(*a))
     a = cube(3)
+    quick = made.cloud_scale(a, "a", lines=False)  # the local path's: no scan lines
+    assert quick.line_voxel is None and not lines
     first = made.cloud_scale(a, "a")
     again = made.cloud_scale(a, "renamed")
     assert calls == ["a"] and again.label == "renamed" and again.spacing == first.spacing
+    assert lines == [1] and first.line_voxel == again.line_voxel == 0.0
     assert made.frame(a) is made.frame(a)
     made.cloud_scale(a.copy(), "copy")  # another array: measured
     assert calls == ["a", "copy"]

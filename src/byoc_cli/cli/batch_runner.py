@@ -107,14 +107,16 @@ class PairRunner:
             (factor_src, factor_tgt), _ = self.load["factors"]
             cloud_src = self._cloud(entry.source, "source", factor_src, timings)
             cloud_tgt = self._cloud(entry.target, "target", factor_tgt, timings)
+            guess = self._guess(entry)
+            local = guess is not None and guess.mode == "local"
             choice, voxels = None, [(None, None, 1.0)] * 2
-            if self.registrar.auto_voxel:
-                choice = self.registrar.voxel_for(cloud_src[2], cloud_tgt[2])
+            if self.registrar.auto_voxel:  # the features' voxel needs the scan lines
+                scales = [self._scale(cloud, not local) for cloud in (cloud_src, cloud_tgt)]
+                choice = self.registrar.voxel_for(*scales)
                 voxels = [
                     (choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)
                 ]
-            guess = self._guess(entry)
-            if guess is not None and guess.mode == "local":
+            if local:
                 return self._local(cloud_src, cloud_tgt, choice, guess, timings), _since(started)
             picked = None
             if choice is not None and applies(self.registrar):
@@ -128,7 +130,6 @@ class PairRunner:
                 return match(src, tgt)
 
             if picked is not None and picked.first == "fpfh":
-                scales = [cloud_src[2], cloud_tgt[2]]
                 second = (lambda: learned(False)) if LEARNED_SECOND_OPINION else None
                 result = smooth_first(self.registrar, clouds, scales, second, picked, factor_tgt)
                 if result.voxel_choice is None:  # the learned features' result
@@ -194,7 +195,7 @@ class PairRunner:
             load = {k: self.load[k] for k in ("intrinsics", "depth_scale")}
             points, name = self.registrar.load(path, label, factor, **load)
             auto = self.registrar.auto_voxel
-            size = self.registrar.cloud_scale(points, name) if auto else None
+            size = self.registrar.cloud_scale(points, name, lines=False) if auto else None
             return points, name, size, key
 
         cloud, cached = self.cache.get(key, read)
@@ -202,6 +203,12 @@ class PairRunner:
             0.0 if cached else time.perf_counter() - start
         )
         return cloud
+
+    def _scale(self, cloud, lines: bool):
+        """The cached ``cloud``'s :class:`~byoc_cli.pipeline.scale.CloudScale`, with its scan
+        lines when ``lines`` (measured on first use)."""
+        points, name, size, _ = cloud
+        return self.registrar.cloud_scale(points, name) if lines else size
 
     def _features(self, cloud, voxel: tuple, timings: dict, stage: str):
         """Features at ``voxel``, ``(voxel_size, refine_voxel, keep)`` (None, None, 1.0:

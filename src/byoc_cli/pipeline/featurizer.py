@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from byoc_cli.pipeline.inputs import as_points, load_weights
-from byoc_cli.pipeline.memo import Memo
+from byoc_cli.pipeline.memo import CloudScales, Memo
 from byoc_cli.pipeline.results import Features
 
 if TYPE_CHECKING:
@@ -53,7 +53,7 @@ class Featurizer:
         self.extractor, self.weights_info = make_extractor(recipe, weights, own, device)
         #: the voxel of every cloud when not auto; the reference of the auto choice when auto
         self.voxel_size = float(self.extractor.voxel_size)
-        self._scales = Memo(self.CACHE)
+        self._scales = CloudScales(self.CACHE, self.measure)
         self._features_memo = Memo(self.CACHE)
         self._frames = Memo(self.CACHE)
 
@@ -69,8 +69,9 @@ class Featurizer:
         return as_points(cloud, label, scale, **load)
 
     @staticmethod
-    def measure(points: np.ndarray, label: str = "cloud") -> CloudScale:
-        """How ``points (N, 3)`` are sampled: :class:`~byoc_cli.pipeline.scale.CloudScale`.
+    def measure(points: np.ndarray, label: str = "cloud", lines: bool = True) -> CloudScale:
+        """How ``points (N, 3)`` are sampled: :class:`~byoc_cli.pipeline.scale.CloudScale`
+        (``lines``: :func:`~byoc_cli.pipeline.scale.measure`'s).
 
         Raises:
             RegistrationError: too few distinct points to read a scale from.
@@ -79,28 +80,22 @@ class Featurizer:
 
         from byoc_cli.pipeline.scale import measure
 
-        return measure(torch.from_numpy(points), label)
+        return measure(torch.from_numpy(points), label, lines)
 
-    def cloud_scale(self, points: np.ndarray, label: str = "cloud") -> CloudScale:
-        """:meth:`measure` of ``points (N, 3)``, once per array (an array this engine read
-        itself and never changes) while among the most recently measured."""
-        scale = self._scales.get(points, None, lambda: self.measure(points, label))
-        return scale._replace(label=label)
+    def cloud_scale(self, points: np.ndarray, label: str = "cloud", lines: bool = True):
+        """:meth:`measure` of ``points (N, 3)``, once per array
+        (:meth:`~byoc_cli.pipeline.memo.CloudScales.scale`; ``lines`` False: its scan lines
+        not measured, ``line_voxel`` None)."""
+        return self._scales.scale(points, label, lines)
 
     def rough_share(self, points: np.ndarray, voxel_size: float) -> float:
         """:func:`~byoc_cli.geometry.sampling.rough_share` of ``points (N, 3)`` at
-        ``voxel_size``, once per array and voxel while among the most recently measured."""
-        import torch
-
-        from byoc_cli.geometry.sampling import rough_share
-
-        return self._scales.get(
-            points, ("rough", voxel_size), lambda: rough_share(torch.from_numpy(points), voxel_size)
-        )
+        ``voxel_size``, once per array and voxel (:class:`~byoc_cli.pipeline.memo.CloudScales`)."""
+        return self._scales.rough(points, voxel_size)
 
     def remember_scale(self, points: np.ndarray, scale: CloudScale) -> None:
         """Keep ``scale`` (measured elsewhere) as the :meth:`cloud_scale` of ``points``."""
-        self._scales.get(points, None, lambda: scale)
+        self._scales.remember(points, scale)
 
     def voxel_for(self, *scales: CloudScale) -> VoxelChoice:
         """The auto voxel of clouds measured with :meth:`measure` (a pair shares one)."""

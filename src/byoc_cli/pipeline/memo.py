@@ -54,6 +54,52 @@ class Memo:
         return value
 
 
+class CloudScales:
+    """The measurements of the ``size`` most recently measured clouds, each made once per
+    array: its scale (``measure(points, label, lines=False)``, a
+    :class:`~byoc_cli.pipeline.scale.CloudScale` without its scan lines), its scan lines
+    (:func:`~byoc_cli.pipeline.scale.scan_line_voxel`, measured only when asked for: a
+    registration from an initial pose needs no feature voxel) and its roughness at a voxel
+    (:func:`~byoc_cli.geometry.sampling.rough_share`)."""
+
+    def __init__(self, size: int, measure) -> None:
+        self._memo = Memo(3 * size)
+        self._measure = measure
+
+    def scale(self, points: np.ndarray, label: str, lines: bool = True) -> Any:
+        """The ``CloudScale`` of ``points (N, 3)`` named ``label``; ``lines`` False: its
+        ``line_voxel`` None unless measured before."""
+        import torch
+
+        from byoc_cli.pipeline.scale import scan_line_voxel
+
+        base = self._memo.get(points, None, lambda: self._measure(points, label, lines=False))
+        if not lines:
+            return base._replace(label=label)
+        line_voxel = self._memo.get(
+            points,
+            "lines",
+            lambda: scan_line_voxel(torch.from_numpy(points), base.spacing, base.radius),
+        )
+        return base._replace(label=label, line_voxel=line_voxel)
+
+    def rough(self, points: np.ndarray, voxel_size: float) -> float:
+        """The rough share of ``points (N, 3)`` at ``voxel_size``."""
+        import torch
+
+        from byoc_cli.geometry.sampling import rough_share
+
+        return self._memo.get(
+            points, ("rough", voxel_size), lambda: rough_share(torch.from_numpy(points), voxel_size)
+        )
+
+    def remember(self, points: np.ndarray, scale: Any) -> None:
+        """Keep ``scale`` (a full ``CloudScale`` measured elsewhere) as that of ``points``."""
+        self._memo.get(points, None, lambda: scale._replace(line_voxel=None))
+        if scale.line_voxel is not None:
+            self._memo.get(points, "lines", lambda: scale.line_voxel)
+
+
 class RefineClouds:
     """The :class:`~byoc_cli.pipeline.refine_levels.RefineCloud` of the ``size`` most recently
     refined clouds: a cloud refined in several pairs (``register-batch``) builds its levels,

@@ -86,14 +86,15 @@ class CloudScale(NamedTuple):
         radius: median distance of the points from their coordinate-wise median.
         label: how messages name the cloud.
         line_voxel: for a cloud sampled along lines, the smallest voxel at which they wash
-            out (:func:`scan_line_voxel`); 0.0 for a cloud sampled evenly.
+            out (:func:`scan_line_voxel`); 0.0 for a cloud sampled evenly; None when not
+            measured (the registration from an initial pose needs no feature voxel).
     """
 
     num_points: int
     spacing: float
     radius: float
     label: str = "cloud"
-    line_voxel: float = 0.0
+    line_voxel: float | None = 0.0
 
     @property
     def dimension(self) -> float:
@@ -130,7 +131,7 @@ class VoxelChoice(NamedTuple):
     @property
     def scan_lines(self) -> bool:
         """Whether a cloud of the pair is sampled along lines (:attr:`CloudScale.line_voxel`)."""
-        return any(s.line_voxel > 0 for s in self.scales)
+        return any((s.line_voxel or 0.0) > 0 for s in self.scales)
 
     def keep_of(self, index: int) -> float:
         """The share of cloud ``index``'s points its features are computed from."""
@@ -149,8 +150,9 @@ class VoxelChoice(NamedTuple):
         }
 
 
-def measure(points: torch.Tensor, label: str = "cloud") -> CloudScale:
-    """The :class:`CloudScale` of ``points (N, 3)``.
+def measure(points: torch.Tensor, label: str = "cloud", lines: bool = True) -> CloudScale:
+    """The :class:`CloudScale` of ``points (N, 3)`` (``lines`` False: without
+    :attr:`~CloudScale.line_voxel`, None; :func:`scan_line_voxel` is most of the cost).
 
     Raises:
         RegistrationError: fewer than :data:`MIN_POINTS` distinct points (no scale can be
@@ -167,7 +169,8 @@ def measure(points: torch.Tensor, label: str = "cloud") -> CloudScale:
         distinct = len(np.unique(points.numpy(), axis=0))
         if distinct < MIN_POINTS:
             raise RegistrationError(_too_few(points, distinct, label))
-    return CloudScale(len(points), spacing, radius, label, scan_line_voxel(points, spacing, radius))
+    line_voxel = scan_line_voxel(points, spacing, radius) if lines else None
+    return CloudScale(len(points), spacing, radius, label, line_voxel)
 
 
 #: float32 coordinates this far from the origin lie 1 cm or more apart
@@ -287,8 +290,10 @@ def choose_voxel(scales: tuple[CloudScale, ...], reference: float) -> VoxelChoic
         why += (
             f"; raised to {DENSITY_FACTOR:g} x the point spacing {spacing:.3g} of the sparser cloud"
         )
-    lines = max(s.line_voxel for s in scales)
-    if lines > voxel:
+    lines = max(s.line_voxel or 0.0 for s in scales)
+    if any(s.line_voxel is None for s in scales):
+        why += "; scan lines not measured (no features)"
+    elif lines > voxel:
         voxel = lines
         why += f"; raised to {lines:.3g}, where the scan lines of the clouds wash out"
     keep = tuple(

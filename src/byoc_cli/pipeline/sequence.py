@@ -155,7 +155,8 @@ def local_pair(
     pool = InPlace() if in_worker() else made.executor()
     labels = ("source", "target")
     read = [
-        pool.submit(_loaded, made, c, k, scale, load) for c, k in zip(clouds, labels, strict=True)
+        pool.submit(_loaded, made, c, k, scale, load, False)
+        for c, k in zip(clouds, labels, strict=True)
     ]
     (src, _, src_scale, t_src), (tgt, _, tgt_scale, t_tgt) = (
         job.result() for job in all_done(read)
@@ -175,14 +176,14 @@ def local_pair(
 
 
 def _loaded(
-    made: Any, cloud: Any, label: str, scale: float | None, load: dict
+    made: Any, cloud: Any, label: str, scale: float | None, load: dict, lines: bool = True
 ) -> tuple[np.ndarray, str, Any, dict[str, float]]:
-    """Read one cloud and (auto voxel) measure it: ``(points, name, CloudScale | None,
-    seconds of each step)``."""
+    """Read one cloud and (auto voxel) measure it, its scan lines when ``lines``: ``(points,
+    name, CloudScale | None, seconds of each step)``."""
     start = time.perf_counter()
     points, name = made.load(cloud, label, scale, **load)
     loaded = time.perf_counter()
-    size = made.cloud_scale(points, name) if made.auto_voxel else None
+    size = made.cloud_scale(points, name, lines) if made.auto_voxel else None
     return points, name, size, {"load": loaded - start, "scale": time.perf_counter() - loaded}
 
 
