@@ -13,6 +13,8 @@ from byoc_cli.io.trajectory import (
     format_tum_trajectory,
     matrix_to_quaternion,
     quaternion_to_matrix,
+    read_trajectory,
+    read_trajectory_log,
     read_tum_trajectory,
 )
 
@@ -110,3 +112,45 @@ def test_log_with_ids():
     ]
     with pytest.raises(ShapeError):
         format_trajectory_log([np.eye(4)], ids=[0, 1])
+
+
+def test_log_round_trip_and_read_trajectory_by_suffix(tmp_path):
+    poses = _random_poses(3, seed=4)
+    path = tmp_path / "poses.log"
+    path.write_text(format_trajectory_log(poses, ids=[0, 5, 7]) + "\n")
+    ids, got = read_trajectory_log(path)
+    assert ids.tolist() == [0, 5, 7]
+    np.testing.assert_array_equal(got, poses)  # the shortest decimals read back exactly
+    given = read_trajectory(path)
+    assert given.format == "log" and given.keys.tolist() == [0, 5, 7]
+    tum = tmp_path / "poses.txt"
+    tum.write_text(format_tum_trajectory([0.5, 0.1, 0.2], poses))
+    given = read_trajectory(tum)
+    assert given.format == "tum" and given.keys.tolist() == [0.1, 0.2, 0.5]  # by stamp
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n", "line 1: record truncated"),
+        ("0 0\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "line 1: expected a header"),
+        ("0 0 1\n1 0 0 0\n0 1 0 x\n0 0 1 0\n0 0 0 1\n", "line 3: expected 4 numbers"),
+        ("0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0 9\n0 0 0 1\n", "line 4: expected 4 numbers"),
+        ("0 0 1\n2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "line 1: the pose is not rigid"),
+        ("0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 1 1\n", "line 5: the last row"),
+        ("\n# nothing\n", "line 2: record truncated"),
+        ("", "holds no pose"),
+    ],
+)
+def test_log_reader_names_the_problem(tmp_path, text, needle):
+    path = tmp_path / "bad.log"
+    path.write_text(text)
+    with pytest.raises(InputError, match=needle):
+        read_trajectory(path)
+
+
+def test_an_empty_tum_file_holds_no_pose(tmp_path):
+    path = tmp_path / "empty.txt"
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n")
+    with pytest.raises(InputError, match="holds no pose"):
+        read_trajectory(path)

@@ -53,6 +53,7 @@ class OdometryOptions:
     keyframe_translation: float
     min_fitness: float
     pose_graph: bool
+    init_poses: Path | None
     intrinsics: Path | None
     depth_scale: float | None
     device: str
@@ -86,6 +87,41 @@ def _global_start(extractor, register_config):
         return result.T_tgt_src.numpy()
 
     return start
+
+
+def _given_poses(path: Path, sequence, used: list[int]) -> tuple[list, dict]:
+    """The poses of ``--init-poses`` per frame of ``sequence`` (None: none matched) and what
+    the report says of them.
+
+    Raises:
+        InputError: an unreadable or malformed file, or one that gives no motion between two
+            used frames (matched: TUM by timestamp, ``.log`` by frame number).
+    """
+    from itertools import pairwise
+
+    from byoc_cli.errors import InputError
+    from byoc_cli.io.trajectory import read_trajectory
+    from byoc_cli.pipeline.motion_prior import STAMP_TOLERANCE, poses_by_id, poses_by_stamp
+
+    given = read_trajectory(path)
+    frames = sequence.frames
+    if given.format == "log":
+        poses = poses_by_id(given.keys, given.poses, [f.index for f in frames])
+        how = "the frame's number as the record's first number"
+    else:  # the stamps odometry writes: the timestamp, else the frame number
+        stamps = [f.index if f.timestamp is None else f.timestamp for f in frames]
+        poses = poses_by_stamp(given.keys, given.poses, stamps, STAMP_TOLERANCE)
+        how = f"the nearest timestamp within {STAMP_TOLERANCE:g} s"
+    matched = sum(poses[f] is not None for f in used)
+    if not any(poses[a] is not None and poses[b] is not None for a, b in pairwise(used)):
+        raise InputError(
+            path, f"gives a pose to {matched} of the {len(used)} frames used, no two in a row "
+            f"(frames are matched by {how})"
+        )  # fmt: skip
+    if matched < len(used):
+        log.warning("%s: no pose for %d of %d frames", path, len(used) - matched, len(used))
+    report = {"file": str(path), "format": given.format, "matched_by": how}
+    return poses, {**report, "frames_matched": matched}
 
 
 def evaluate(sequence, trajectory) -> dict:
@@ -223,6 +259,14 @@ def _print_eval(report: dict, name: str) -> None:
         is_flag=True,
         help="Optimise a pose graph over the keyframes with loop edges (slower).",
     ),
+    path_option(
+        "--init-poses",
+        help="A trajectory of the same frames (wheel odometry, an IMU, an earlier run): TUM "
+        "(frames matched by the nearest timestamp within 0.02 s; the frame number when the "
+        "layout has none) or .log (by frame number). Each frame's ICP starts from the "
+        "previous frame's pose times its motion; the constant velocity where that does not "
+        "fit or a pose is missing.",
+    ),
     path_option("--intrinsics", help="Intrinsics file for a sequence that ships none."),
     float_option(
         "--depth-scale", type=DEPTH_SCALE, help="Depth units per metre [default: the layout's]."
@@ -244,12 +288,18 @@ def odometry(
     """Track the depth camera of one RGB-D sequence and write its trajectory (TUM format).
 
     Each frame is registered onto the current keyframe by coarse-to-fine point-to-plane ICP
-    from the constant-velocity prediction (else the previous pose, else a global start with
+    from the motion of --init-poses when given, else (or when that does not fit) from the
+    constant-velocity prediction (else the previous pose, else a global start with
     --features); a new keyframe starts when the motion exceeds --keyframe-rotation or
     --keyframe-translation. The first frame is the world.
     """
     from byoc_cli.io.trajectory import format_tum_trajectory
-    from byoc_cli.pipeline.odometry import OdometryConfig, config_dict, estimate_trajectory
+    from byoc_cli.pipeline.odometry import (
+        OdometryConfig,
+        config_dict,
+        estimate_trajectory,
+        used_frames,
+    )
 
     started = time.perf_counter()
     options["device"] = resolve_device(options["device"])
@@ -262,7 +312,7 @@ def odometry(
     weights = None if recipe.features.weights is None else Path(recipe.features.weights)
     outputs = claim_outputs(
         {"-o": output, "--json": json_path},
-        inputs=(o.intrinsics, weights, recipe_file),
+        inputs=(o.intrinsics, weights, recipe_file, o.init_poses),
         input_dirs=(rgbd_dir,),
     )
     extractor, register_config, weights_info = pairwise_setup(recipe, o.device)
@@ -278,6 +328,10 @@ def odometry(
         pose_graph=o.pose_graph,
         seed=recipe.seed,
     )
+    given, init_report = None, None
+    if o.init_poses is not None:
+        used = used_frames(len(sequence.frames), config)
+        given, init_report = _given_poses(o.init_poses, sequence, used)
     progress = StageProgress(quiet)
     try:
         trajectory = estimate_trajectory(
@@ -285,6 +339,7 @@ def odometry(
             config,
             _global_start(extractor, register_config),
             lambda done, total: progress("frames", done, total),
+            given,
         )
     finally:
         progress.close()
@@ -302,6 +357,7 @@ def odometry(
         "lost_frames": [frames[n].index for n in trajectory.lost],
         "stats": trajectory.stats,
         "settings": {**config_dict(config), "features": extractor.name},
+        "init_poses": init_report,
         "recipe": recipe.as_dict(),
         "weights": weights_info,
         "evaluation": evaluation,

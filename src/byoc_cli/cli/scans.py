@@ -29,6 +29,16 @@ from byoc_cli.cli.options import (
 from byoc_cli.cli.output import claim_outputs, write_json, write_stdout
 from byoc_cli.cli.pairwise import StageProgress, pairwise_setup
 from byoc_cli.cli.recipe_options import build_recipe, recipe_options
+from byoc_cli.cli.scans_init import (
+    ScansInit,
+    about,
+    about_first,
+    announce,
+    init_poses_options,
+    pair_init_json,
+    resolve_init,
+    unscaled,
+)
 from byoc_cli.io.cloudpath import cloud_stem
 from byoc_cli.pipeline.recipe import RegistrationRecipe
 
@@ -53,6 +63,8 @@ class ScansOptions:
     scale: float | None
     device: str
     recipe: RegistrationRecipe
+    init_poses: str | None = None
+    max_correction: tuple | None = None
     recipe_file: Path | None = None
 
 
@@ -120,7 +132,7 @@ def _stale_poses(poses_dir: Path, written: list[Path]) -> list[Path]:
     )
 
 
-def _pair_json(pair, poses, scans: list[Path], origin) -> dict:
+def _pair_json(pair, poses, scans: list[Path], origin, unit: float) -> dict:
     import numpy as np
 
     from byoc_cli.pipeline.posegraph import transform_difference
@@ -139,8 +151,10 @@ def _pair_json(pair, poses, scans: list[Path], origin) -> dict:
         "pruned": pair.pruned,
         "seconds": pair.seconds,
         "error": pair.error or None,
-        "T_i_j": None if pair.T_i_j is None else _about(pair.T_i_j, origin).tolist(),
+        "T_i_j": None if pair.T_i_j is None else about(pair.T_i_j, origin).tolist(),
     }
+    if pair.init is not None:
+        record["init"] = pair_init_json(pair.init, unit)
     if pair.T_i_j is not None and poses[pair.i] is not None and poses[pair.j] is not None:
         graph = np.linalg.inv(poses[pair.i]) @ poses[pair.j]
         rot, trans = transform_difference(graph, pair.T_i_j)
@@ -212,6 +226,7 @@ def _pair_json(pair, poses, scans: list[Path], origin) -> dict:
         help="Multiply input coordinates by this (0.001 for millimetres); disables the unit "
         "check. Poses and the merged model are written in the input units.",
     ),
+    init_poses_options,
     recipe_options("seed"),
     device_option,
     verbose_option,
@@ -222,12 +237,15 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
     """Register overlapping SCANS (point clouds) into the frame of the first one.
 
     An E57 file of several scans gives each of its scans (in the file's frame: their stored
-    poses applied), named FILE.e57:K (0-based) and poses/<stem>_scanK.txt.
+    poses applied), named FILE.e57:K (0-based) and poses/<stem>_scanK.txt; they start from
+    their stored poses unless --init-poses says otherwise.
 
     Every overlapping pair is registered with the pairwise registration of `byoc register`
     (the same --features, --weights, --voxel-size) and refined by ICP; a pose graph of the
     pairs, with their information matrices, is optimised with Open3D's global optimisation,
-    which prunes wrong pairs. A one-line summary goes to stdout.
+    which prunes wrong pairs. A one-line summary goes to stdout. With --init-poses, the pairs
+    that overlap under the poses are refined from them instead (no features), within
+    --max-correction, and the graph starts at the poses.
     """
     started = time.perf_counter()
     options["device"] = resolve_device(options["device"])
@@ -249,11 +267,13 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
                 param_hint="'SCANS'",
             )
         stems[stem] = path
+    init = resolve_init(scans_list, settings.init_poses, settings.max_correction)
     from byoc_cli.io.folders import check_run_folder
 
     check_run_folder(out, _is_scans_folder, what="register-scans folder")
+    announce(init, quiet)
     with _results_folder(out):
-        unplaced = _run(scans_list, out, settings, quiet, started)
+        unplaced = _run(scans_list, out, settings, quiet, started, init)
     if unplaced:
         names = ", ".join(str(scans_list[k]) for k in unplaced[:5])
         if not is_quiet(quiet):
@@ -262,13 +282,19 @@ def register_scans(scans: tuple[Path, ...], out: Path, quiet: bool, **options: A
 
 
 def _run(
-    scans: list[Path], out: Path, options: ScansOptions, quiet: bool, started: float
+    scans: list[Path],
+    out: Path,
+    options: ScansOptions,
+    quiet: bool,
+    started: float,
+    init: ScansInit | None,
 ) -> list[int]:
     """Register and write everything; returns the indices of the scans not placed."""
     from byoc_cli import __version__
+    from byoc_cli.cli.scans_init import register
     from byoc_cli.io import atomic_write_text, format_transform, write_ply
     from byoc_cli.io.trajectory import format_trajectory_log
-    from byoc_cli.pipeline.scans import ScansConfig, config_dict, merge_clouds, register_scans
+    from byoc_cli.pipeline.scans import ScansConfig, config_dict, merge_clouds
 
     pose_paths = [out / "poses" / f"{cloud_stem(path)}.txt" for path in scans]
     outputs = claim_outputs(
@@ -278,14 +304,19 @@ def _run(
             "--merged": options.merged,
             **{f"pose {k}": p for k, p in enumerate(pose_paths)},
         },
-        inputs=(*scans, _path(options.recipe.features.weights), options.recipe_file),
+        inputs=(
+            *scans,
+            _path(options.recipe.features.weights),
+            options.recipe_file,
+            init.path if init is not None and init.source == "file" else None,
+        ),
     )
     extractor, register_config, weights_info = pairwise_setup(options.recipe, options.device)
     t0 = time.perf_counter()
     scale = options.scale
     auto = options.recipe.features.voxel == "auto" and scale is None
     points = [_load(path, 1.0 if auto else scale) for path in scans]
-    origin, points = _about_first(points)  # georeferenced scans: about the first one's middle
+    origin, points = about_first(points)  # georeferenced scans: about the first one's middle
     voxel_choice = None
     if auto:  # the scans' own size: brought to the features' scale when it is another
         scale, voxel_choice = _auto_scale(points, scans, extractor.voxel_size)
@@ -300,17 +331,15 @@ def _run(
         min_fitness=options.min_fitness,
     )
     progress = StageProgress(quiet)
+    extra: dict = {}
     try:
-        import torch
-
-        result = register_scans(
-            points, extractor, register_config, config, [str(p) for p in scans], progress,
-            workers=torch.get_num_threads(),  # byoc --threads: pairs side by side
-        )  # fmt: skip
+        setup = (extractor, register_config, config, progress, origin)
+        labels = [str(p) for p in scans]
+        result = register(points, labels, setup, init, scale or 1.0, extra.__setitem__)
     finally:
         progress.close()
     unit = 1.0 / (scale or 1.0)
-    poses = [None if T is None else _unscaled(_about(T, origin), unit) for T in result.poses]
+    poses = [None if T is None else unscaled(about(T, origin), unit) for T in result.poses]
     placed = [k for k, T in enumerate(poses) if T is not None]
     kept = [p for p in result.pairs if p.status == "kept"]
     pruned = [p for p in result.pairs if p.pruned]
@@ -335,7 +364,7 @@ def _run(
         "pairs_kept": len(kept),
         "pairs_failed": sum(p.status == "failed" for p in result.pairs),
         "edges_pruned": len(pruned),
-        "pairs": [_pair_json(p, result.poses, scans, origin) for p in result.pairs],
+        "pairs": [_pair_json(p, result.poses, scans, origin, unit) for p in result.pairs],
         "settings": {
             "features": extractor.name,
             "voxel_size_m": extractor.voxel_size,
@@ -350,6 +379,7 @@ def _run(
         },
         "recipe": options.recipe.as_dict(),
         "weights": weights_info,
+        **extra,
         "timings_s": {"load": load_time, **result.timings},
         "pairs_per_s": len(result.pairs) / max(result.timings["pairs"], 1e-9),
     }
@@ -402,31 +432,3 @@ def _auto_scale(points: list, scans: tuple[Path, ...], reference: float):
 
 def _path(name: str | None) -> Path | None:
     return None if name is None else Path(name)
-
-
-def _about_first(points: list):
-    """``(origin (3,), points)``: scans far from the origin (georeferenced: the first scan's
-    median point more than 100 of its radii out, :func:`~byoc_cli.geometry.sampling.local_frame`)
-    moved by the first scan's median point, subtracted in float64; else zeros and the scans."""
-    import numpy as np
-
-    from byoc_cli.geometry.sampling import local_frame
-
-    origin = local_frame(points[0]).origin
-    if not np.any(origin):
-        return np.zeros(3), points
-    return origin, [p - origin for p in points]
-
-
-def _about(T, origin):
-    """``T (4, 4)`` between clouds moved by ``-origin``, as a transform of the clouds where they
-    were: ``x' = R (x - o) + t + o``."""
-    T = T.copy()
-    T[:3, 3] += origin - T[:3, :3] @ origin
-    return T
-
-
-def _unscaled(T, unit: float):
-    T = T.copy()
-    T[:3, 3] *= unit
-    return T

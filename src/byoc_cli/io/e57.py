@@ -140,18 +140,22 @@ def _pose(header: Any) -> np.ndarray:
     return T
 
 
-def read_e57_poses(path: str | os.PathLike[str]) -> list[np.ndarray]:
+def read_e57_poses(
+    path: str | os.PathLike[str], *, stored_only: bool = False
+) -> list[np.ndarray | None]:
     """The stored pose of every scan of an E57 file, as ``T_file_scan``.
 
     Returns:
         One ``(4, 4)`` float64 per scan, in the file's order: ``x_file = R x_scan + t``
-        (column vectors); the identity for a scan that stores no pose.
+        (column vectors); for a scan that stores no pose, the identity (``stored_only``:
+        None).
 
     Raises:
         InputError: the file cannot be read, or a pose is not a rotation and a translation.
     """
     with _opened(Path(path)) as e57:
-        return [_pose(e57.get_header(k)) for k in range(e57.scan_count)]
+        headers = [e57.get_header(k) for k in range(e57.scan_count)]
+        return [None if stored_only and not h.has_pose() else _pose(h) for h in headers]
 
 
 def _scan_points(e57: Any, index: int, path: Path) -> tuple[np.ndarray, Any]:

@@ -6,7 +6,11 @@ TUM (``groundtruth.txt``, what ``byoc odometry`` writes)
     One line per pose, ``timestamp tx ty tz qx qy qz qw``: the camera centre in the world
     and the unit quaternion of the rotation (Hamilton, scalar last), ``#`` comments allowed.
 ``.log`` (Open3D's ``write_pinhole_camera_trajectory``, 3DMatch's reconstructions)
-    Per pose a header line ``i i i+1`` then the 4x4 pose, one row per line.
+    Per pose a header line ``i i i+1`` (or ``i j n``: the first number is the pose's id)
+    then the 4x4 pose, one row per line.
+
+:func:`read_trajectory` reads either (a ``.log`` by its suffix), as the initial poses of
+``register-scans`` and ``odometry`` (``--init-poses``).
 
 Numbers are written as the shortest decimal that reads back to the same float64 (the
 quaternion of a pose is then exact to about 1e-16).
@@ -20,6 +24,7 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -27,10 +32,13 @@ from byoc_cli.errors import InputError, ShapeError
 from byoc_cli.io.inputs import read_input
 
 __all__ = [
+    "GivenTrajectory",
     "format_trajectory_log",
     "format_tum_trajectory",
     "matrix_to_quaternion",
     "quaternion_to_matrix",
+    "read_trajectory",
+    "read_trajectory_log",
     "read_tum_trajectory",
 ]
 
@@ -177,3 +185,77 @@ def format_trajectory_log(poses: Sequence[np.ndarray], ids: Sequence[int] | None
         rows = "".join(" ".join(repr(float(x)) for x in row) + "\n" for row in pose)
         records.append(f"{i} {i} {i + 1}\n{rows}")
     return "".join(records)
+
+
+def read_trajectory_log(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read a ``.log`` trajectory: per pose a line of 3 integers (the first is the pose's id),
+    then 4 rows of 4 numbers; blank lines are skipped.
+
+    Returns:
+        ``(ids (N,) int64, poses (N, 4, 4) float64)`` in file order.
+
+    Raises:
+        InputError: unreadable, no pose, a header or row of the wrong count or not numbers, a
+            truncated record, or a matrix that is not a rigid transform.
+    """
+    path = Path(path)
+    try:
+        text = read_input(path, "trajectory").decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"cannot read it ({exc})") from exc
+    lines = [(k, line.split()) for k, line in enumerate(text.splitlines(), 1) if line.strip()]
+    if len(lines) % 5:
+        number = lines[len(lines) - len(lines) % 5][0]
+        raise InputError(path, f"line {number}: record truncated (a line 'i i n' and 4 rows)")
+    ids, poses = [], []
+    for start in range(0, len(lines), 5):
+        (number, header), rows = lines[start], lines[start + 1 : start + 5]
+        if len(header) != 3 or not all(v.lstrip("-").isdigit() for v in header):
+            raise InputError(path, f"line {number}: expected a header of 3 integers 'i i n'")
+        T = np.eye(4)
+        for r, (row_number, row) in enumerate(rows):
+            try:
+                T[r] = [float(v) for v in row]
+            except ValueError as exc:
+                raise InputError(path, f"line {row_number}: expected 4 numbers") from exc
+        try:
+            _check_poses([T])
+        except ShapeError as exc:
+            raise InputError(path, f"line {number}: the pose is not rigid ({exc})") from exc
+        if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+            raise InputError(path, f"line {number + 4}: the last row is not '0 0 0 1'")
+        ids.append(int(header[0]))
+        poses.append(T)
+    if not poses:
+        raise InputError(path, "holds no pose")
+    return np.asarray(ids, np.int64), np.asarray(poses, np.float64)
+
+
+class GivenTrajectory(NamedTuple):
+    """A trajectory read by :func:`read_trajectory`.
+
+    Attributes:
+        format: ``"tum"`` or ``"log"``.
+        keys: per pose its timestamp (TUM, seconds or frame numbers) or its id (``.log``).
+        poses: ``(N, 4, 4)`` float64 ``T_world_cam``; TUM poses sorted by stamp, ``.log``
+            poses in file order.
+    """
+
+    format: str
+    keys: np.ndarray
+    poses: np.ndarray
+
+
+def read_trajectory(path: str | os.PathLike[str]) -> GivenTrajectory:
+    """A TUM trajectory or (suffix ``.log``) a ``.log`` one.
+
+    Raises:
+        InputError: unreadable, malformed (the line is named) or without a pose.
+    """
+    if Path(path).suffix.lower() == ".log":
+        ids, poses = read_trajectory_log(path)
+        return GivenTrajectory("log", ids, poses)
+    stamps, poses = read_tum_trajectory(path)
+    if not len(poses):
+        raise InputError(Path(path), "holds no pose (TUM: 'timestamp tx ty tz qx qy qz qw')")
+    return GivenTrajectory("tum", stamps, poses)

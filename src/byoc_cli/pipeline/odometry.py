@@ -5,7 +5,9 @@ refinement (:func:`byoc_cli.pipeline.refine_pairs.pair_cloud`):
 
 1. coarse-to-fine point-to-plane ICP (:func:`byoc_cli.pipeline.refine_pairs.refine_pair`, the
    refinement of ``byoc register``, at the finest voxel ``voxel_size``) onto the current
-   KEYFRAME, started from the constant
+   KEYFRAME, started from the GIVEN motion when there is one (``motions``: the previous
+   frame's pose times a given trajectory's motion, :mod:`byoc_cli.pipeline.motion_prior`),
+   else (or when that does not fit) from the constant
    velocity prediction (the last frame-to-frame motion applied once more); if that does not
    fit (fitness, RMSE), from the previous frame's pose; if neither fits, from a GLOBAL start
    (``global_start``: FPFH + RANSAC by default, the learned features in ``byoc odometry
@@ -13,7 +15,8 @@ refinement (:func:`byoc_cli.pipeline.refine_pairs.pair_cloud`):
 2. the frame becomes the new keyframe when its motion from the keyframe exceeds
    ``keyframe_rotation_deg`` or ``keyframe_translation``, or its fitness drops below
    ``keyframe_min_fitness``;
-3. a frame that no start fits is LOST: it keeps the constant-velocity prediction, is reported,
+3. a frame that no start fits is LOST: it keeps the given motion's (else the constant-velocity)
+   prediction, is reported,
    and starts a new keyframe (and a new segment of the pose graph) unless it has (almost) no
    depth, then the keyframe stays;
 4. optionally (``pose_graph``), a pose graph over the keyframes of each segment: the
@@ -36,6 +39,7 @@ import numpy as np
 
 from byoc_cli.errors import RegistrationError
 from byoc_cli.pipeline import posegraph, refine_pairs
+from byoc_cli.pipeline.motion_prior import relative_motions
 from byoc_cli.pipeline.refine_levels import RefineCloud
 from byoc_cli.pipeline.refine_pairs import PairFit
 
@@ -164,10 +168,15 @@ def _track(
     velocity: np.ndarray,
     global_start: Callable,
     config: OdometryConfig,
+    given: np.ndarray | None = None,
 ) -> tuple[str, PairFit]:
-    """Register a frame onto its keyframe; returns the start that fitted (or the best try)."""
+    """Register a frame onto its keyframe (``given``: the given motion from the previous
+    frame, tried first); returns the start that fitted (or the best try)."""
     tries = []
-    for origin, start in (("velocity", T_key_prev @ velocity), ("previous", T_key_prev)):
+    starts = [("velocity", T_key_prev @ velocity), ("previous", T_key_prev)]
+    if given is not None:
+        starts.insert(0, ("init", T_key_prev @ given))
+    for origin, start in starts:
         est = refine_pairs.refine_pair(cloud, key, start)
         if _fits(est, config):
             return origin, est
@@ -200,10 +209,18 @@ class _Tracked(NamedTuple):
     fitness: list[float]
 
 
+class _Starts(NamedTuple):
+    """Where tracking starts besides the frames themselves: the global start on prepared
+    clouds, and per frame the given motion from the previous frame (or None)."""
+
+    global_start: Callable
+    motions: list[np.ndarray | None]
+
+
 def _tracking_pass(
     load: Callable[[int], RefineCloud],
     num: int,
-    global_start: Callable,
+    starts: _Starts,
     config: OdometryConfig,
     stats: dict[str, int],
     progress: Callable[[int, int], None],
@@ -226,8 +243,11 @@ def _tracking_pass(
         kf = tr.keyframes[-1]
         T_key_prev = np.linalg.inv(tr.poses[kf]) @ tr.poses[k - 1]
         usable = refine_pairs.enough_points(cloud)
+        given = starts.motions[k]
         if usable:
-            origin, est = _track(cloud, key_cloud, T_key_prev, velocity, global_start, config)
+            origin, est = _track(
+                cloud, key_cloud, T_key_prev, velocity, starts.global_start, config, given
+            )
         if usable and _fits(est, config):
             stats[f"start_{origin}"] += 1
             pose = tr.poses[kf] @ est.T_tgt_src
@@ -245,7 +265,7 @@ def _tracking_pass(
         else:  # lost: keep moving as before, restart tracking from this frame if it can
             stats["lost"] += 1
             tr.lost.append(k)
-            pose = tr.poses[k - 1] @ velocity
+            pose = tr.poses[k - 1] @ (velocity if given is None else given)
             tr.reference.append(kf)
             tr.T_ref_frame.append(np.linalg.inv(tr.poses[kf]) @ pose)
             tr.fitness.append(float("nan"))
@@ -320,6 +340,7 @@ def estimate_trajectory(
     config: OdometryConfig | None = None,
     global_start: GlobalStart | None = None,
     progress: Callable[[int, int], None] | None = None,
+    given: list[np.ndarray | None] | None = None,
 ) -> Trajectory:
     """The camera trajectory of ``sequence`` by keyframe ICP odometry (see module doc).
 
@@ -329,6 +350,10 @@ def estimate_trajectory(
         global_start: ``T_tgt_src`` of two frames' points (finest ICP voxel) when ICP from
             the motion prior fails; default FPFH + RANSAC.
         progress: called as ``progress(done, total)`` after each frame.
+        given: a given trajectory's pose ``T_world_cam (4, 4)`` (any world) per frame of the
+            sequence's frame list, or None where it has none: the motion between two used
+            frames that both have one is where a frame's ICP starts (``stats``:
+            ``start_init``).
 
     Returns:
         :class:`Trajectory`.
@@ -336,6 +361,7 @@ def estimate_trajectory(
     Raises:
         FrameError: a depth image cannot be read.
         RegistrationError: the sequence has no frame, or the first has (almost) no depth.
+        ValueError: ``given`` is not one entry per frame of the sequence.
     """
     config = config or OdometryConfig()
     report = progress or (lambda *_: None)
@@ -351,15 +377,22 @@ def estimate_trajectory(
         timings["load"] += time.perf_counter() - start
         return cloud
 
-    start_fn = _global_start_of(global_start, config)
+    if given is not None and len(given) != len(sequence.frames):
+        raise ValueError(f"given: {len(given)} poses for {len(sequence.frames)} frames")
+    motions = relative_motions(
+        [None] * len(frames) if given is None else [given[f] for f in frames]
+    )
+    starts = _Starts(_global_start_of(global_start, config), motions)
     stats = dict.fromkeys(
         ["start_velocity", "start_previous", "start_global", "lost", "keyframes"], 0
     )
+    if given is not None:
+        stats["start_init"] = 0
     stats.update(loops_tried=0, loops_kept=0, loops_pruned=0)
     key_clouds: dict[int, RefineCloud] = {}
     started = time.perf_counter()
     first = str(sequence.frames[frames[0]].depth_path)
-    tr = _tracking_pass(load, len(frames), start_fn, config, stats, report, key_clouds, first)
+    tr = _tracking_pass(load, len(frames), starts, config, stats, report, key_clouds, first)
     timings["track"] = time.perf_counter() - started - timings["load"]
     stats["keyframes"] = len(tr.keyframes)
     if config.pose_graph and len(tr.keyframes) > 2:

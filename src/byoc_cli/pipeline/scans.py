@@ -74,9 +74,11 @@ class PairRecord(NamedTuple):
 
     Attributes:
         i, j: target and source clouds (``i < j``).
-        kind: ``"all"``, ``"neighbour"`` or ``"candidate"``.
-        status: ``"kept"``, ``"rejected"`` (ICP fitness below the bar) or ``"failed"`` (the
-            pairwise registration raised; ``error`` says why).
+        kind: ``"all"``, ``"neighbour"``, ``"candidate"`` or (from initial poses)
+            ``"overlap"``.
+        status: ``"kept"``, ``"rejected"`` (ICP fitness below the bar; from initial poses,
+            or beyond the trust region) or ``"failed"`` (the pairwise registration raised;
+            ``error`` says why).
         T_i_j: ``(4, 4)`` refined transform (maps cloud ``j`` into cloud ``i``), or None.
         information: ``(6, 6)`` ICP information matrix, or None.
         confidence: the pairwise registration's confidence (NaN when it failed).
@@ -85,6 +87,8 @@ class PairRecord(NamedTuple):
         pruned: True when the optimisation pruned this loop edge.
         seconds: time spent on the pair.
         error: the failure's message, else ``""``.
+        init: from initial poses, ``T_init``, the ``correction`` and ``inside_trust_region``
+            (:mod:`byoc_cli.pipeline.scans_init`); else None.
     """
 
     i: int
@@ -100,6 +104,7 @@ class PairRecord(NamedTuple):
     pruned: bool
     seconds: float
     error: str
+    init: dict | None = None
 
 
 class ScansResult(NamedTuple):
@@ -196,9 +201,11 @@ def _spanning_tree(num: int, pairs: list[PairRecord]) -> tuple[list[np.ndarray |
 
 
 def _optimise(
-    pairs: list[PairRecord], config: ScansConfig, num: int
+    pairs: list[PairRecord], config: ScansConfig, num: int, start: list | None = None
 ) -> tuple[list[np.ndarray | None], list[PairRecord]]:
-    """The pose graph of the kept pairs (module doc, step 4); pairs get ``edge``/``pruned``."""
+    """The pose graph of the kept pairs (module doc, step 4); pairs get ``edge``/``pruned``.
+    ``start``: ``T_world_k`` per cloud (world = cloud 0) where the optimisation starts, in
+    place of the spanning tree's poses (:mod:`byoc_cli.pipeline.scans_init`)."""
     initial, tree = _spanning_tree(num, pairs)
     placed = [k for k in range(num) if initial[k] is not None]
     local = {k: m for m, k in enumerate(placed)}
@@ -218,7 +225,7 @@ def _optimise(
         for n in in_graph
     ]  # fmt: skip
     optimised, kept = posegraph.optimize_pose_graph(
-        [initial[k] for k in placed],
+        [(initial if start is None else start)[k] for k in placed],
         edges,
         refine_pairs.FINE_DISTANCE * config.icp_voxel,
         edge_prune_threshold=config.edge_prune_threshold,
@@ -297,14 +304,8 @@ def register_scans(
     config = config or ScansConfig()
     register_config = register_config or RegisterConfig()
     report = progress or (lambda *_: None)
-    labels = list(labels) if labels is not None else [f"cloud {k}" for k in range(len(points))]
-    if len(points) < 2:
-        raise ShapeError(f"need at least 2 clouds, got {len(points)}")
+    arrays, labels = checked_clouds(points, labels)
     timings = {"features": 0.0, "prepare": 0.0, "pairs": 0.0, "pose_graph": 0.0}
-    arrays = [np.asarray(cloud, dtype=np.float64) for cloud in points]
-    for k, cloud in enumerate(arrays):
-        if cloud.ndim != 2 or cloud.shape[1] != 3:
-            raise ShapeError(f"{labels[k]}: points must be (N, 3), got {cloud.shape}")
     pool = worker_pool(workers)
     try:
         return _register_all(
@@ -312,6 +313,22 @@ def register_scans(
         )
     finally:
         pool.shutdown(cancel_futures=True)
+
+
+def checked_clouds(points: Sequence, labels: Sequence[str] | None) -> tuple[list, list[str]]:
+    """``points`` as ``(N_k, 3)`` float64 arrays and the labels (default ``cloud k``).
+
+    Raises:
+        ShapeError: fewer than 2 clouds, or one is not ``(N, 3)``.
+    """
+    labels = list(labels) if labels is not None else [f"cloud {k}" for k in range(len(points))]
+    if len(points) < 2:
+        raise ShapeError(f"need at least 2 clouds, got {len(points)}")
+    arrays = [np.asarray(cloud, dtype=np.float64) for cloud in points]
+    for k, cloud in enumerate(arrays):
+        if cloud.ndim != 2 or cloud.shape[1] != 3:
+            raise ShapeError(f"{labels[k]}: points must be (N, 3), got {cloud.shape}")
+    return arrays, labels
 
 
 def _register_all(arrays, extractor, register_config, config, labels, report, timings, pool):
