@@ -192,3 +192,9 @@ def test_scans_in_millimetres_are_brought_to_the_features_scale(desk, run, tmp_p
     assert "above the trained range" in settings["voxel_choice"]["reason"]
     before = json.loads((out_metres / "report.json").read_text())["settings"]
     assert before["scale"] is None  # scans of the trained size are not rescaled
+    # the pairs' T_i_j are in the input's millimetres too: they agree with the poses
+    for pair in json.loads((out / "report.json").read_text())["pairs"]:
+        if pair["T_i_j"] is not None and pair["edge"] and not pair["pruned"]:
+            graph = np.linalg.inv(poses[pair["i"]]) @ poses[pair["j"]]
+            shift = np.linalg.norm(np.array(pair["T_i_j"])[:3, 3] - graph[:3, 3])
+            assert shift < 80.0, pair  # millimetres (a translation in metres would be ~1000x off)

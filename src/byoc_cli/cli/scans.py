@@ -151,14 +151,14 @@ def _pair_json(pair, poses, scans: list[Path], origin, unit: float) -> dict:
         "pruned": pair.pruned,
         "seconds": pair.seconds,
         "error": pair.error or None,
-        "T_i_j": None if pair.T_i_j is None else about(pair.T_i_j, origin).tolist(),
+        "T_i_j": None if pair.T_i_j is None else unscaled(about(pair.T_i_j, origin), unit).tolist(),
     }
     if pair.init is not None:
         record["init"] = pair_init_json(pair.init, unit)
     if pair.T_i_j is not None and poses[pair.i] is not None and poses[pair.j] is not None:
         graph = np.linalg.inv(poses[pair.i]) @ poses[pair.j]
-        rot, trans = transform_difference(graph, pair.T_i_j)
-        record["disagreement_with_poses"] = {"rotation_deg": rot, "translation_m": trans}
+        rot, trans = transform_difference(graph, pair.T_i_j)  # in the scans' scaled units
+        record["disagreement_with_poses"] = {"rotation_deg": rot, "translation_m": trans * unit}
     return record
 
 
