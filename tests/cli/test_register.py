@@ -678,3 +678,16 @@ def test_a_smooth_pair_is_registered_with_fpfh_and_the_report_says_why(runner, t
     assert got["features_choice"]["rough_share"][0] <= got["features_choice"]["smooth_share"]
     assert "restarts" not in got["timings_s"] and "first" in got["timings_s"]
     assert "(FPFH features: smooth surfaces," in run.stderr
+
+
+def test_init_dash_reads_the_pose_from_stdin(runner, tmp_path):
+    from byoc_cli.io import format_transform
+
+    src, tgt, T_gt, guess = _room_files(tmp_path)
+    out = tmp_path / "T.txt"
+    args = ["register", str(src), str(tgt), "--init", "-", "-o", str(out), "-q"]
+    res = runner.invoke(cli, args, input=format_transform(guess))
+    assert res.exit_code == 0, res.output
+    assert np.linalg.norm(read_transform(out)[:3, 3] - T_gt[:3, 3]) < 0.01
+    res = runner.invoke(cli, args, input="1 2 3\n")
+    assert res.exit_code == 1 and "stdin: expected a 4x4 matrix" in res.stderr

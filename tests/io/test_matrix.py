@@ -150,3 +150,13 @@ def test_missing_directory_binary_empty(tmp_path):
     (tmp_path / "empty.txt").write_bytes(b"")
     with pytest.raises(InputError, match=r"empty file \(0 bytes\)"):
         read_transform(tmp_path / "empty.txt")
+
+
+def test_a_dash_reads_the_transform_from_stdin(monkeypatch):
+    import io
+
+    monkeypatch.setattr("sys.stdin", io.StringIO("1 0 0 2\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"))
+    assert read_transform("-")[0, 3] == 2.0
+    monkeypatch.setattr("sys.stdin", io.StringIO("1 0 0\n"))
+    with pytest.raises(InputError, match="stdin"):
+        read_transform("-")

@@ -99,9 +99,11 @@ class RegisterOptions:
     "--init",
     "init_path",
     default=None,
-    help="An initial pose: a guess of T (4 lines of 4 numbers, the convention of -o) from "
-    "odometry, a robot, GNSS/IMU or an earlier result. The registration refines from it (no "
-    "features) and exits 3 when it leaves --max-correction or fits poorly (docs/poses.md).",
+    dash=True,
+    help="An initial pose: a guess of T (4 lines of 4 numbers, the convention of -o; '-' "
+    "reads it from stdin) from odometry, a robot, GNSS/IMU or an earlier result. The "
+    "registration refines from it (no features) and exits 3 when it leaves --max-correction "
+    "or fits poorly (docs/poses.md).",
 )
 @init_options
 @qc_option

@@ -98,7 +98,7 @@ def read_transform(
     skipped.
 
     Args:
-        path: the file.
+        path: the file; ``-`` reads stdin (named ``stdin`` in messages).
         orthonormal_tol: largest accepted ``max |R^T R - I|`` of the rotation block.
 
     Returns:
@@ -110,8 +110,12 @@ def read_transform(
             (``max |R^T R - I|`` above ``orthonormal_tol``) or is a reflection; the message
             names the file.
     """
-    path = Path(path)
-    rows = _parse_rows(_read_text(path), path)
+    if str(path) == "-":
+        path = Path("stdin")
+        rows = _parse_rows(sys.stdin.read(), path)
+    else:
+        path = Path(path)
+        rows = _parse_rows(_read_text(path), path)
     if len(rows) != 4 or any(len(r) != 4 for r in rows):
         raise InputError(path, f"expected a 4x4 matrix, found {_shape_phrase(rows)}")
     T = np.array(rows, dtype=np.float64)
