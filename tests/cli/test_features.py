@@ -137,3 +137,21 @@ def test_output_over_the_input_is_refused(runner, tmp_path: Path):
     assert res.exit_code == 1 and "input" in res.stderr
     res = runner.invoke(cli, ["features", str(cloud)])
     assert res.exit_code == 2
+
+
+def test_the_meta_names_the_voxels_unit(runner, shared_data, tmp_path):
+    from byoc_cli.io import read_point_cloud
+
+    demo = shared_data / "pairs" / "3dmatch_demo" / "source.ply"
+    write_ply(tmp_path / "mm.ply", read_point_cloud(demo).points * 1000.0)
+    metas = {}
+    for name, cloud in (("m", demo), ("mm", tmp_path / "mm.ply")):
+        res = runner.invoke(cli, ["features", str(cloud), "-o", str(tmp_path / name), "--npy"])
+        assert res.exit_code == 0, res.output
+        metas[name] = json.loads((tmp_path / f"{name}.meta.json").read_text())
+    assert metas["m"]["unit"] == "m" and metas["m"]["voxel_size_m"] == metas["m"]["voxel_size"]
+    # millimetres: the auto voxel scales with the cloud and the unit is not known to be metres
+    assert metas["mm"]["unit"] is None and metas["mm"]["voxel_size_m"] is None
+    assert metas["mm"]["voxel_size"] == pytest.approx(1000 * metas["m"]["voxel_size"], rel=0.1)
+    res = runner.invoke(cli, ["features", str(tmp_path / "mm.ply"), "-o", str(tmp_path / "z.npz")])
+    assert res.exit_code == 0 and str(np.load(tmp_path / "z.npz")["unit"]) == ""

@@ -1,9 +1,11 @@
 """``byoc features CLOUD -o feats.npz``: per-point descriptors for other solvers.
 
-The npz holds ``points (M, 3)`` float64 (metres), ``features (M, C)`` float32 (unit norm;
-row m describes point m), ``point_index (M,)`` int64 (rows of the input), ``voxel_size``
-(metres), ``scale``, ``method`` and ``weights_sha256`` (empty for fpfh). ``--npy`` writes
-``<stem>.points.npy``, ``<stem>.feats.npy`` and ``<stem>.meta.json`` instead.
+The npz holds ``points (M, 3)`` float64 (the input's coordinates times ``scale``),
+``features (M, C)`` float32 (unit norm; row m describes point m), ``point_index (M,)`` int64
+(rows of the input), ``voxel_size`` (in the units of ``points``), ``unit`` (``"m"`` when those
+are known to be metres, else empty: :func:`features_unit`), ``scale``, ``method`` and
+``weights_sha256`` (empty for fpfh). ``--npy`` writes ``<stem>.points.npy``,
+``<stem>.feats.npy`` and ``<stem>.meta.json`` instead.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from byoc_cli.cli.output import (
     write_json,
     write_stdout_bytes,
 )
-from byoc_cli.cli.pairwise import check_depth_inputs, registrar
+from byoc_cli.cli.pairwise import DEPTH_EXTENSIONS, check_depth_inputs, registrar
 from byoc_cli.cli.recipe_options import build_recipe, recipe_options
 
 log = logging.getLogger("byoc")
@@ -46,7 +48,17 @@ def _npy_bytes(array) -> bytes:
     return buffer.getvalue()
 
 
-def _npz_bytes(feats) -> bytes:
+def features_unit(feats, made, cloud: Path, scale_given: bool) -> str | None:
+    """``"m"`` when the points of ``feats`` are known to be metres, else None (the input's own
+    units): a ``--scale`` given, a depth image, a voxel given in metres or the features' own
+    (the input was checked to look like metres), or an auto voxel that found a scan of the
+    trained size and kept the features' voxel (as ``byoc register``'s report ``unit``)."""
+    if scale_given or Path(cloud).suffix.lower() in DEPTH_EXTENSIONS or not made.auto_voxel:
+        return "m"
+    return "m" if (feats.refine_voxel or feats.voxel_size) == made.voxel_size else None
+
+
+def _npz_bytes(feats, unit: str | None) -> bytes:
     import numpy as np
 
     buffer = io.BytesIO()
@@ -56,6 +68,7 @@ def _npz_bytes(feats) -> bytes:
         features=feats.feats,
         point_index=feats.point_index,
         voxel_size=np.float64(feats.voxel_size),
+        unit=np.str_(unit or ""),
         scale=np.float64(feats.scale),
         method=np.str_(feats.features),
         weights_sha256=np.str_(feats.weights_sha256 or ""),
@@ -126,6 +139,7 @@ def features(cloud: Path, output: Path, npy: bool, intrinsics: Path | None, **op
     outputs = claim_outputs(claimed, inputs=(cloud, intrinsics, weights, recipe_file))
     made = registrar(recipe, device)
     feats = made.extract(cloud, scale=scale, intrinsics=intrinsics, depth_scale=depth_scale)
+    unit = features_unit(feats, made, cloud, scale is not None)
     with outputs:
         if npy:
             atomic_write_bytes(names["points"], _npy_bytes(feats.points))
@@ -136,21 +150,24 @@ def features(cloud: Path, output: Path, npy: bool, intrinsics: Path | None, **op
                     "source": str(cloud),
                     "num_points": int(feats.points.shape[0]),
                     "feature_dim": int(feats.feats.shape[1]),
-                    "voxel_size_m": feats.voxel_size,
+                    "voxel_size": feats.voxel_size,
+                    "unit": unit,
+                    "voxel_size_m": feats.voxel_size if unit == "m" else None,
                     "scale": feats.scale,
                     "method": feats.features,
                     "weights_sha256": feats.weights_sha256,
                 },
             )
         elif is_stdout(output):
-            write_stdout_bytes(_npz_bytes(feats))
+            write_stdout_bytes(_npz_bytes(feats, unit))
         else:
-            atomic_write_bytes(output, _npz_bytes(feats))
+            atomic_write_bytes(output, _npz_bytes(feats, unit))
     log.info(
-        "%s: %d points, %d-d %s features at %g m",
+        "%s: %d points, %d-d %s features at %g %s",
         cloud,
         feats.points.shape[0],
         feats.feats.shape[1],
         feats.features,
         feats.voxel_size,
+        unit or "input units",
     )
