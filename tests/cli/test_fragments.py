@@ -6,24 +6,13 @@ import json
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
-from byoc_cli.cli.main import cli
 from byoc_cli.io import read_gt_info, read_gt_log, read_gt_overlap
+from tests.cli._run import invoke as _invoke
+from tests.cli._run import one_error_line as _one_error_line
 from tests.pipeline import _synthetic as syn
 
 FAST = ["--frames-per-fragment", "5", "--tsdf-voxel", "0.02", "--sdf-trunc", "0.06"]
-
-
-def _invoke(args: list) -> object:
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def _one_error_line(result, *needles: str) -> None:
-    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error:")]
-    assert len(lines) == 1, result.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -7,26 +7,15 @@ import shutil
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from byoc_cli.cli.main import cli
 from byoc_cli.evaluation.trajectory import absolute_trajectory_error
 from byoc_cli.io.rgbd import discover_sequences
 from byoc_cli.io.trajectory import read_tum_trajectory
+from tests.cli._run import invoke as _invoke
+from tests.cli._run import one_error_line as _one_error_line
 from tests.pipeline import _synthetic as syn
 
 FAST = ["--features", "fpfh", "--icp-voxel", "0.03"]
-
-
-def _invoke(args: list) -> object:
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def _one_error_line(result, *needles: str) -> None:
-    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error:")]
-    assert len(lines) == 1, result.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

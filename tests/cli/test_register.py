@@ -548,20 +548,12 @@ def test_tum_depth_images_read_the_depth_scale_of_their_layout(runner, shared_da
 def _room_files(tmp_path: Path) -> tuple[Path, Path, np.ndarray, np.ndarray]:
     """A room of three boxes sampled twice, the source moved: ``(source, target, T_gt,
     guess)``, the guess 8 deg (about the source's centroid) and 20 cm off."""
+    from tests.pipeline._rooms import ROOM, sample_boxes
+
     rng = np.random.default_rng(2)
-    boxes = [([-1.5, -1.2, 0.0], [1.5, 1.2, 2.0]), ([-0.4, -0.3, 0.0], [0.3, 0.2, 0.7])]
-    boxes.append(([0.6, 0.4, 0.0], [1.2, 1.0, 1.1]))
 
     def sample(n: int) -> np.ndarray:
-        out = []
-        for lo, hi in boxes:
-            lo, hi = np.array(lo), np.array(hi)
-            p = lo + rng.random((n, 3)) * (hi - lo)
-            face = rng.integers(0, 6, n)
-            axis = face // 2
-            p[np.arange(n), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
-            out.append(p)
-        return np.concatenate(out)
+        return sample_boxes(ROOM, n, rng)
 
     import torch
 

@@ -7,22 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from byoc_cli.cli.main import cli
 from byoc_cli.io import read_point_cloud, read_transform, write_ply
+from tests.cli._run import invoke as _invoke
+from tests.cli._run import one_error_line as _one_error_line
 from tests.pipeline._scans_data import desk_fragments, pose_errors
-
-
-def _invoke(args: list) -> object:
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def _one_error_line(result, *needles: str) -> None:
-    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error:")]
-    assert len(lines) == 1, result.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -10,28 +10,17 @@ from pathlib import Path
 import numpy as np
 import pye57
 import pytest
-from click.testing import CliRunner
 
-from byoc_cli.cli.main import cli
 from byoc_cli.io import read_transform, write_ply
 from byoc_cli.io.trajectory import format_trajectory_log, format_tum_trajectory
 from byoc_cli.pipeline import scans as scans_pipeline
 from byoc_cli.pipeline.posegraph import transform_difference
 from byoc_cli.pipeline.scans import ScansResult
+from tests.cli._run import invoke as _invoke
+from tests.cli._run import one_error_line as _one_error_line
 from tests.pipeline import _rooms as rooms
 
 UTM = np.array([512345.678, 4123456.789, 123.4])
-
-
-def _invoke(args: list) -> object:
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def _one_error_line(result, *needles: str) -> None:
-    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("byoc: error:")]
-    assert len(lines) == 1, result.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,6 @@ degenerate input."""
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 from hypothesis import given, settings
@@ -12,25 +10,8 @@ from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
 from byoc_cli.fitting.plane_to_plane import disc_covariances, plane_to_plane_step
-from byoc_cli.geometry.transforms import apply_transform, axis_angle_to_matrix, make_transform
-
-
-def _box_surface(n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(n, 3)`` points on the six faces of a 1 x 0.6 x 0.4 box and their normals."""
-    half = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64)
-    face = torch.randint(0, 6, (n,), generator=generator)
-    axis, sign = face // 2, (face % 2) * 2 - 1
-    p = (torch.rand(n, 3, generator=generator, dtype=torch.float64) * 2 - 1) * half
-    p[torch.arange(n), axis] = sign.double() * half[axis]
-    normal = torch.zeros(n, 3, dtype=torch.float64)
-    normal[torch.arange(n), axis] = sign.double()
-    return p, normal
-
-
-def _motion(angle_deg: float, t: list[float]) -> torch.Tensor:
-    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
-    R = axis_angle_to_matrix(axis / axis.norm() * math.radians(angle_deg))
-    return make_transform(R, torch.tensor(t, dtype=torch.float64))
+from byoc_cli.geometry.transforms import apply_transform
+from tests.fitting._surfaces import box_surface, motion
 
 
 def _iterate(p, n_p, q, n_q, steps=10, weights=None):
@@ -55,8 +36,8 @@ def _cost(T, p, n_p, q, n_q, flatness=1e-3):
 
 
 def test_recovers_a_known_motion_on_a_box(generator):
-    q, n = _box_surface(3000, generator)
-    T_true = _motion(4.0, [0.03, -0.02, 0.01])  # maps p onto q
+    q, n = box_surface(3000, generator)
+    T_true = motion(4.0, [0.03, -0.02, 0.01])  # maps p onto q
     p = apply_transform(torch.linalg.inv(T_true), q)
     n_p = n @ T_true[:3, :3]  # the source's normals, in the source frame
     T, step = _iterate(p, n_p, q, n)
@@ -65,8 +46,8 @@ def test_recovers_a_known_motion_on_a_box(generator):
 
 
 def test_a_step_lowers_the_naive_cost_and_the_normals_sign_does_not_matter(generator):
-    q, n = _box_surface(60, generator)
-    T_true = _motion(6.0, [0.05, 0.02, -0.04])
+    q, n = box_surface(60, generator)
+    T_true = motion(6.0, [0.05, 0.02, -0.04])
     p = apply_transform(torch.linalg.inv(T_true), q)
     n_p = n @ T_true[:3, :3]
     eye = torch.eye(4, dtype=torch.float64)
@@ -80,8 +61,8 @@ def test_a_step_lowers_the_naive_cost_and_the_normals_sign_does_not_matter(gener
 @given(st.integers(0, 2**31 - 1), st.floats(0.1, 10.0))
 def test_weights_scale_and_order_do_not_change_the_step(seed, scale):
     g = torch.Generator().manual_seed(seed)
-    q, n = _box_surface(200, g)
-    T_true = _motion(3.0, [0.02, 0.0, 0.01])
+    q, n = box_surface(200, g)
+    T_true = motion(3.0, [0.02, 0.0, 0.01])
     p = apply_transform(torch.linalg.inv(T_true), q)
     w = torch.rand(200, generator=g, dtype=torch.float64)
     base = plane_to_plane_step(p, n, q, n, w)

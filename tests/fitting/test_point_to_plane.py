@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 from hypothesis import given, settings
@@ -11,25 +9,8 @@ from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
 from byoc_cli.fitting.point_to_plane import point_to_plane_step, point_to_plane_steps
-from byoc_cli.geometry.transforms import apply_transform, axis_angle_to_matrix, make_transform
-
-
-def _box_surface(n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(n, 3)`` points on the six faces of a 1 x 0.6 x 0.4 box and their normals."""
-    half = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64)
-    face = torch.randint(0, 6, (n,), generator=generator)
-    axis, sign = face // 2, (face % 2) * 2 - 1
-    p = (torch.rand(n, 3, generator=generator, dtype=torch.float64) * 2 - 1) * half
-    p[torch.arange(n), axis] = sign.double() * half[axis]
-    normal = torch.zeros(n, 3, dtype=torch.float64)
-    normal[torch.arange(n), axis] = sign.double()
-    return p, normal
-
-
-def _motion(angle_deg: float, t: list[float]) -> torch.Tensor:
-    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
-    R = axis_angle_to_matrix(axis / axis.norm() * math.radians(angle_deg))
-    return make_transform(R, torch.tensor(t, dtype=torch.float64))
+from byoc_cli.geometry.transforms import apply_transform
+from tests.fitting._surfaces import box_surface, motion
 
 
 def _iterate(p, q, n, steps=10, degeneracy=0.05):
@@ -41,8 +22,8 @@ def _iterate(p, q, n, steps=10, degeneracy=0.05):
 
 
 def test_recovers_a_known_motion_on_a_box(generator):
-    q, n = _box_surface(3000, generator)
-    T_true = _motion(4.0, [0.03, -0.02, 0.01])  # maps p onto q
+    q, n = box_surface(3000, generator)
+    T_true = motion(4.0, [0.03, -0.02, 0.01])  # maps p onto q
     p = apply_transform(torch.linalg.inv(T_true), q)
     T, step = _iterate(p, q, n)
     assert torch.allclose(T, T_true, atol=1e-8)
@@ -64,7 +45,7 @@ def test_a_plane_holds_the_sliding_directions_and_fixes_the_others(generator):
 
 def test_a_weakly_constrained_direction_moves_without_the_hold_and_not_with_it(generator):
     # a floor with a low ridge: sliding across the ridge is constrained only by the ridge
-    q, n = _box_surface(4000, generator)
+    q, n = box_surface(4000, generator)
     q, n = q[n[:, 2] > 0.5], n[n[:, 2] > 0.5]  # the top face only
     ridge = torch.rand(10, 3, generator=generator, dtype=torch.float64) * 0.02
     ridge[:, 0] = 0.0
@@ -131,14 +112,14 @@ def test_sliding_holds_a_translation_that_few_surfaces_face(generator):
 @pytest.mark.parametrize("degeneracy", [0.0, 0.05])
 def test_batched_steps_agree_with_one_step_each(generator, degeneracy):
     # a box, a plane (sliding held), a box seen in part (weights 0), and nothing at all
-    p, n = _box_surface(400, generator)
+    p, n = box_surface(400, generator)
     plane_p = p.clone()
     plane_p[:, 2] = 0.0
     plane_n = torch.zeros_like(n)
     plane_n[:, 2] = 1.0
     P = torch.stack([p, plane_p, p, p])
     N = torch.stack([n, plane_n, n, n])
-    Q = apply_transform(_motion(3.0, [0.02, -0.01, 0.03]), P)
+    Q = apply_transform(motion(3.0, [0.02, -0.01, 0.03]), P)
     W = torch.ones(4, 400, dtype=torch.float64)
     W[2, ::3] = 0.0
     W[3] = 0.0

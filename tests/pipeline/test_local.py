@@ -21,23 +21,12 @@ from byoc_cli.pipeline.local import (
     correction,
 )
 from byoc_cli.pipeline.refine_levels import RefineCloud
-
-ROOM = [([-1.5, -1.2, 0.0], [1.5, 1.2, 2.0]), ([-0.4, -0.3, 0.0], [0.3, 0.2, 0.7])]
-ROOM += [([0.6, 0.4, 0.0], [1.2, 1.0, 1.1])]
+from tests.pipeline._rooms import ROOM, sample_boxes
 
 
 def _boxes(n: int, boxes, rng: np.random.Generator) -> np.ndarray:
     """``(n, 3)`` points spread over the faces of axis-aligned ``boxes``."""
-    out = []
-    for lo, hi in boxes:
-        lo, hi = np.array(lo), np.array(hi)
-        m = n // len(boxes)
-        p = lo + rng.random((m, 3)) * (hi - lo)
-        face = rng.integers(0, 6, m)
-        axis = face // 2
-        p[np.arange(m), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
-        out.append(p)
-    return np.concatenate(out)
+    return sample_boxes(boxes, n // len(boxes), rng)
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:

@@ -210,12 +210,7 @@ def linear_share(
     Raises:
         ShapeError: ``points`` is not ``(N, 3)`` or ``voxel_size`` is not positive.
     """
-    _check(points)
-    if not voxel_size > 0:
-        raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
-    sd = _neighbourhood_spreads(
-        points, voxel_size, LINE_NEIGHBOURS, LINE_RADIUS, LINE_MIN_POINTS, generator, samples
-    )
+    sd = _checked_spreads(points, voxel_size, LINE_NEIGHBOURS, LINE_RADIUS, generator, samples)
     if sd is None:
         return 0.0
     linearity = (sd[:, 2] - sd[:, 1]) / np.maximum(sd[:, 2], np.finfo(np.float64).tiny)
@@ -254,17 +249,27 @@ def rough_share(
     Raises:
         ShapeError: ``points`` is not ``(N, 3)`` or ``voxel_size`` is not positive.
     """
-    _check(points)
-    if not voxel_size > 0:
-        raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
-    sd = _neighbourhood_spreads(
-        points, voxel_size, ROUGH_NEIGHBOURS, ROUGH_RADIUS, LINE_MIN_POINTS, generator, samples
-    )
+    sd = _checked_spreads(points, voxel_size, ROUGH_NEIGHBOURS, ROUGH_RADIUS, generator, samples)
     if sd is None:
         return 0.0
     var = sd**2
     variation = var[:, 0] / np.maximum(var.sum(axis=1), np.finfo(np.float64).tiny)
     return float((variation > ROUGHNESS).mean())
+
+
+def _checked_spreads(points, voxel_size, neighbours, radius, generator, samples):
+    """:func:`_neighbourhood_spreads` of ``points (N, 3)`` (at least :data:`LINE_MIN_POINTS`
+    a neighbourhood) once they and ``voxel_size`` are checked.
+
+    Raises:
+        ShapeError: ``points`` is not ``(N, 3)`` or ``voxel_size`` is not positive.
+    """
+    _check(points)
+    if not voxel_size > 0:
+        raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
+    return _neighbourhood_spreads(
+        points, voxel_size, neighbours, radius, LINE_MIN_POINTS, generator, samples
+    )
 
 
 def _neighbourhood_spreads(

@@ -166,9 +166,9 @@ class Correction(NamedTuple):
 def correction(T_result: np.ndarray, T_init: np.ndarray, centroid: np.ndarray) -> Correction:
     """The :class:`Correction` from ``T_init (4, 4)`` to ``T_result (4, 4)`` for a source
     whose centroid is ``centroid (3,)`` (source coordinates)."""
-    D = T_result @ np.linalg.inv(T_init)
-    cos = (float(np.trace(D[:3, :3])) - 1.0) / 2.0
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    from byoc_cli.pipeline.posegraph import rotation_angle_deg
+
+    angle = rotation_angle_deg((T_result @ np.linalg.inv(T_init))[:3, :3])
     moved = T_result[:3, :3] @ centroid + T_result[:3, 3]
     start = T_init[:3, :3] @ centroid + T_init[:3, 3]
     return Correction(angle, float(np.linalg.norm(moved - start)))
@@ -187,6 +187,7 @@ def align_coarse(src: RefineCloud, tgt: RefineCloud, T: torch.Tensor) -> tuple[t
     from pykdtree.kdtree import KDTree
 
     from byoc_cli.fitting.plane_to_plane import plane_to_plane_step
+    from byoc_cli.pipeline.posegraph import rotation_angle_deg
 
     T = T.detach().to(device="cpu", dtype=torch.float64).clone()
     fitness = 0.0
@@ -206,8 +207,7 @@ def align_coarse(src: RefineCloud, tgt: RefineCloud, T: torch.Tensor) -> tuple[t
             j = torch.from_numpy(j.astype(np.int64))[ok]
             step = plane_to_plane_step(moved[ok], turned[ok], q[j], n_q[j])
             T = step.T @ T
-            dR = step.T[:3, :3]
-            angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(dR)) - 1) / 2)))
+            angle = math.radians(rotation_angle_deg(step.T[:3, :3].numpy()))
             if angle < COARSE_TOLERANCE and float(step.T[:3, 3].norm()) < COARSE_TOLERANCE * size:
                 break
     return T, fitness
@@ -328,8 +328,13 @@ def _same_place(T_a, T_b, voxel: float) -> bool:
     """Whether ``T_a`` and ``T_b (4, 4)`` lie within SAME_DEG and SAME_VOXELS voxels."""
     import torch
 
-    D = torch.linalg.inv(T_a) @ T_b
-    return _angle_deg(D[:3, :3]) < SAME_DEG and float(D[:3, 3].norm()) < SAME_VOXELS * voxel
+    from byoc_cli.pipeline.posegraph import rotation_angle_deg
+
+    D = (torch.linalg.inv(T_a) @ T_b).numpy()
+    return (
+        rotation_angle_deg(D[:3, :3]) < SAME_DEG
+        and float(np.linalg.norm(D[:3, 3])) < SAME_VOXELS * voxel
+    )
 
 
 def _cues(fine, refined, T_coarse, coarse_fitness, T_local, v) -> dict[str, float]:
@@ -337,6 +342,7 @@ def _cues(fine, refined, T_coarse, coarse_fitness, T_local, v) -> dict[str, floa
     import torch
 
     from byoc_cli.geometry.voxel import near_occupied
+    from byoc_cli.pipeline.posegraph import rotation_angle_deg
 
     T = refined.T_tgt_src
     p = fine[0].source(0)
@@ -354,9 +360,9 @@ def _cues(fine, refined, T_coarse, coarse_fitness, T_local, v) -> dict[str, floa
         "conditioning": refined.conditioning,
         "coarse_fitness": coarse_fitness,
         "overlap": overlap,
-        "shift_deg": _angle_deg(shift[:3, :3]),
+        "shift_deg": rotation_angle_deg(shift[:3, :3].numpy()),
         "shift_voxels": float(torch.linalg.vector_norm(shift[:3, 3])) / v,
-        "correction_deg": _angle_deg(T[:3, :3] @ torch.from_numpy(moved_by[:3, :3]).T),
+        "correction_deg": rotation_angle_deg(T[:3, :3].numpy() @ moved_by[:3, :3].T),
         "correction_voxels": float(torch.linalg.vector_norm(end - start)) / v,
     }
 
@@ -370,11 +376,6 @@ def _to_local(T: np.ndarray, origin_src, origin_tgt) -> np.ndarray:
     if origin_tgt is not None:
         T[:3, 3] -= origin_tgt
     return T
-
-
-def _angle_deg(R: torch.Tensor) -> float:
-    cos = (float(R.trace()) - 1.0) / 2.0
-    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def _lap(timings: dict, stage: str, start: float) -> float:
