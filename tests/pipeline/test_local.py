@@ -228,3 +228,14 @@ def test_guesses_40_deg_off_are_never_wrong_with_a_pass(registrar, shared_data):
 def _unit(rng) -> np.ndarray:
     d = rng.normal(size=3)
     return d / np.linalg.norm(d)
+
+
+def test_a_stray_point_far_away_moves_neither_the_result_nor_its_correction(registrar, room):
+    src, tgt, T_gt = room
+    guess = _about(T_gt, src.mean(0), 8.0, [0.1, 0.2, -0.1])
+    clean = registrar.register(src, tgt, init=guess)
+    stray = registrar.register(np.vstack([src, [[1e6, 1e6, 1e6]]]), tgt, init=guess)
+    assert clean.passed and stray.passed  # the stray dragged the mean 60 m: exit 3
+    np.testing.assert_allclose(stray.T_tgt_src, clean.T_tgt_src, atol=1e-9)
+    for key in ("rotation_deg", "translation"):
+        assert stray.init["correction"][key] == pytest.approx(clean.init["correction"][key])

@@ -132,6 +132,11 @@ class LocalFrame(NamedTuple):
         """Whether the cloud is registered about another origin than its own."""
         return bool(self.origin.any())
 
+    def centroid(self, points: np.ndarray) -> np.ndarray:
+        """``(3,)`` float64 mean of the inside points of ``points (N, 3)``, in the input's
+        coordinates: where the cloud is, whatever strays lie far away."""
+        return (points if self.inside is None else points[self.inside]).mean(axis=0)
+
     def local(self, points: np.ndarray) -> np.ndarray:
         """``(K, 3)`` float64 local coordinates of the inside points of ``points (N, 3)``
         (the array itself when nothing moves and nothing is left out). The median point is

@@ -278,7 +278,7 @@ def register_local(
     confidence = local_probability(cues)
     T = about_origins(refined.T_tgt_src.numpy(), *origins)
     T[:3, 3] /= scale
-    centroid = src_points.mean(axis=0) / scale
+    centroid = frames[0].centroid(src_points) / scale  # a stray point far away moves it not
     moved = correction(T, np.asarray(T_init, dtype=np.float64), centroid)
     region = trust.resolved(v, scale)
     inside = region.holds(moved)
@@ -394,7 +394,7 @@ def check_global(
     passes (``"local"``); else ``found`` is kept, not passed when it left the trust region
     (``"disagrees"``; one below its gate stays below it: ``"below gate"``).
     """
-    centroid = pair.points[0].mean(axis=0) / pair.scale
+    centroid = made.frame(pair.points[0]).centroid(pair.points[0]) / pair.scale
     region = guess.trust.resolved(pair.voxel, pair.scale)
     moved = correction(found.T_tgt_src, guess.T, centroid)
     agrees = region.holds(moved)

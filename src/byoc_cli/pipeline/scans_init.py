@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.sampling import local_frame
 from byoc_cli.pipeline import refine_pairs
 from byoc_cli.pipeline.local import (
     COARSE_BASE,
@@ -122,7 +123,7 @@ def register_scans_from_poses(
         fine = list(pool.map(prepare, range(len(arrays))))
         voxel = fine[0].voxel_size
         coarse = [RefineCloud(c.average(0), COARSE_BASE * voxel, pyramid=True) for c in fine]
-        centroids = [a.mean(axis=0) for a in arrays]
+        centroids = [local_frame(a).centroid(a) for a in arrays]  # strays left out
         region = (trust or TrustRegion()).resolved(voxel, 1.0)
         prepared = _Prepared(fine, coarse, centroids, region, config.min_fitness)
         todo = overlapping_pairs(fine, start, config.candidate_overlap)
