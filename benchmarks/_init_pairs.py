@@ -105,6 +105,22 @@ def within(T: np.ndarray, T_gt: np.ndarray, degrees: float, metres: float) -> bo
 CHECK_DEG, CHECK_M = 1.25, 0.025
 
 
+#: a pair's clouds overlap at its truth when this share of the source (every 20th point) has a
+#: target point within OVERLAP_M under it; below it the pose is not the data's to give (the
+#: first fr1_rpy pairs 50 frames apart share nothing: 0 %)
+MIN_OVERLAP, OVERLAP_M = 0.3, 0.05
+
+
+def overlap(src: np.ndarray, tgt: np.ndarray, T: np.ndarray) -> float:
+    """Share of every 20th point of ``src (N, 3)`` with a point of ``tgt (M, 3)`` within
+    OVERLAP_M under ``T (4, 4)``."""
+    from pykdtree.kdtree import KDTree
+
+    points = src[::20].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    distance, _ = KDTree(tgt.astype(np.float64)).query(points, k=1)
+    return float(np.mean(distance < OVERLAP_M))
+
+
 def refined_truth(src: np.ndarray, tgt: np.ndarray, T_gt: np.ndarray, voxel: float):
     """``(T, determined)``: the ground truth refined on the data by the multiscale ICP, and
     whether Open3D's multiscale ICP from the ground truth ends within CHECK_DEG / CHECK_M

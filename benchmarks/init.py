@@ -17,9 +17,12 @@ Methods, all in this process except the batch timing:
 
 Each result is judged against the ground truth (within 5 deg / 10 cm and 2 deg / 5 cm) and
 against the truth refined on the data (`_init_pairs.refined_truth`, where the data determine
-it); a result "exits 0" when it passes the gate. Then `register-batch` runs twice on the same
-pairs (PLY files in a temporary folder, the CLI of this source tree in a subprocess), with and
-without the init column, and the wall times are compared.
+it: the refinements of the ground truth agree and at least 30 % of the source overlaps the
+target under it); a result "exits 0" when it passes the gate. A line per overlap band counts
+the right results (refined truth, 5 deg / 10 cm) of `byoc --init` and `byoc global`. Then
+`register-batch` runs twice on the same pairs (PLY files in a temporary folder, the CLI of this
+source tree in a subprocess), with and without the init column, and the wall times are
+compared.
 
 `collect` and `fit`: the calibration of the local confidence (`_init_calibration.py`);
 `sweep`: right results by the size of the guess's error, behind the default trust region
@@ -48,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from _init_calibration import collect, fit
-from _init_pairs import ROOT, errors, perturbed, refined_truth, rgbd_pairs
+from _init_pairs import MIN_OVERLAP, ROOT, errors, overlap, perturbed, refined_truth, rgbd_pairs
 from _init_sweep import sweep
 
 #: Open3D's multiscale point-to-plane ICP: (voxel m, correspondence distance m, iterations)
@@ -134,7 +137,13 @@ def run_pairs(args) -> tuple[list[dict], list[tuple[np.ndarray, np.ndarray, np.n
         near = perturbed(pair.T_gt, centroid, args.near_deg, args.near_m, rng)
         far = perturbed(pair.T_gt, centroid, args.far_deg, args.near_m, rng)
         results = _methods(registrar, src, tgt, near, far)
-        record = {"pair": pair.name, "group": pair.group, "determined": determined}
+        shared = overlap(src, tgt, truth)
+        record = {
+            "pair": pair.name,
+            "group": pair.group,
+            "determined": determined and shared >= MIN_OVERLAP,
+            "overlap": shared,
+        }
         for label, (T, passed, seconds) in results.items():
             record[label] = {
                 "T": np.asarray(T).tolist(),
@@ -199,7 +208,8 @@ def table(records: list[dict], seconds: dict[str, float] | None) -> str:
     methods.append("byoc --init far")
     out = [
         f"{len(records)} pairs; right (wrong) against the ground truth, and in brackets against"
-        " the truth refined on the data, on the pairs where the data determine it",
+        " the truth refined on the data, on the pairs where the data determine it (the"
+        f" refinements of the truth agree and at least {MIN_OVERLAP:.0%} of the source overlaps)",
         "",
         "| method | 5 deg / 10 cm | 2 deg / 5 cm | wrong with exit 0 | exit 3 | s / pair |",
         "|---|---|---|---|---|---|",
@@ -225,6 +235,7 @@ def table(records: list[dict], seconds: dict[str, float] | None) -> str:
         mean = np.mean([x["seconds"] for x in rows])
         gate = (str(wrong), str(refused)) if gated else ("-", "-")
         out.append(f"| {m} | {loose} | {tight} | {gate[0]} | {gate[1]} | {mean:.2f} |")
+    out += ["", *bands(records)]
     if seconds:
         repeats = len(seconds["runs"]["init"])
         out += [
@@ -234,6 +245,29 @@ def table(records: list[dict], seconds: dict[str, float] | None) -> str:
             f"with it (the median of the runs' ratios {seconds['ratio']:.2f})",
         ]
     return "\n".join(out)
+
+
+#: the overlap bands of :func:`bands`: (low, high], share of the source
+BANDS = ((0.3, 1.0), (0.1, 0.3), (0.0, 0.1))
+
+
+def bands(records: list[dict]) -> list[str]:
+    """Right results (refined truth, 5 deg / 10 cm) of the local and global paths per band of
+    the clouds' overlap at the truth."""
+    lines = []
+    for low, high in BANDS:
+        rows = [
+            r for r in records if low < r["overlap"] <= high or (low == 0 and r["overlap"] == 0)
+        ]
+        right = {
+            m: sum(within_errors(r[m]["refined"], 5, 0.10) for r in rows)
+            for m in ("byoc --init", "byoc global")
+        }
+        lines.append(
+            f"overlap ({low:.0%}, {high:.0%}]: {len(rows)} pairs, right: byoc --init "
+            f"{right['byoc --init']}, byoc global {right['byoc global']}"
+        )
+    return lines
 
 
 def within_errors(err, degrees: float, metres: float) -> bool:
