@@ -24,9 +24,12 @@ Three steps:
   the shared data's pairs where the learned features win (the demo pair, the 3DMatch sample,
   depth-frame pairs) and on the pair folders given; the range per group.
 * ``judge SUMMARY.jsonl``: one line per pair of a ``register-batch`` summary: rotation and
-  translation error, confidence, passed, right, fallback, seconds per stage.
+  translation error (share of the size, and cm), confidence, passed, right, fallback,
+  seconds per stage.
 
-Right: rotation within 5 deg and translation within 10 % of the object's size (``info.json``).
+Right: rotation within 5 deg and translation within 10 % of the object's size (``info.json``;
+the simulated rooms of benchmarks/scan_sim.py's ``room`` set, whose ``pairs.txt`` it writes,
+are judged alike, their size the room's longest side).
 
 Usage: python benchmarks/objects.py make --out DIR [--shapes blob torus ...] [--views ...]
            [--angles 30 60] [--seeds 0 1] [--sizes 0.1 0.2 0.3] [--noise 1e-4]
@@ -198,7 +201,7 @@ def _count_o3d(pairs: Path, out_dir: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> None:
-    pairs = args.dir / "pairs.txt"
+    pairs = args.dir.resolve() / "pairs.txt"  # the summary's paths are read from elsewhere
     trees = {"byoc": str(ROOT / "src")}
     if args.baseline:
         trees["baseline"] = str(Path(args.baseline).resolve())
@@ -304,12 +307,16 @@ def judge(args: argparse.Namespace) -> None:
         if r.get("T_tgt_src") is None:
             print(f"{name:32s} error: {r.get('error')}")
             continue
-        ok, rot, share = right(np.array(r["T_tgt_src"]), (args.summary.parent / r["source"]).parent)
+        folder = (args.summary.parent / r["source"]).parent
+        ok, rot, share = right(np.array(r["T_tgt_src"]), folder)
+        info = json.loads((folder / "info.json").read_text())
+        cm = 100 * share * info.get("size", info.get("scene_size_m"))
         fb = r.get("fallback") or {}
         t = r.get("timings_s", {})
         stages = " ".join(f"{k}={v:.2f}" for k, v in t.items() if v >= 0.05)
         print(
             f"{name:32s} {'right' if ok else 'WRONG'} rot {rot:6.2f} trans {100 * share:5.1f}% "
+            f"({cm:.1f} cm) "
             f"conf {r['confidence']:.2f} {'pass' if r['passed'] else 'fail'} "
             f"learned {fb.get('learned_confidence', r['confidence']):.2f} "
             f"fb {'used' if fb.get('used') else ('ran' if fb else '-')}  {stages}"

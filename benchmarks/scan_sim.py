@@ -14,6 +14,12 @@ from a seed (``np.random.default_rng``; no global RNG):
   a table), the table cut off, scaled to 20 cm, ray-cast by a dense pinhole laser scanner
   (0.5 mm spacing on the object, 0.1 mm range noise) from two viewpoints 45 deg apart on the
   arc the real camera covered. Points are in the scanner's frame (z forward, y down).
+* **room**: furnished rooms (walls with door and window openings, an optional partition wall,
+  tables, shelves, chairs, boxes, cylinders; some laid out symmetrically) scanned from two
+  positions 1-4 m apart by a terrestrial laser scanner (panoramic, -60..+90 deg, 3 mm range
+  noise, 100k-1M points) or a rotating 2D laser (1-3 cm noise, scan lines a few cm apart),
+  each scan in its scanner's frame at a random heading; ``DIR/pairs.txt`` lists them for
+  ``benchmarks/objects.py run`` (``_scan_sim_room.py``, ``_scan_sim_room_scan.py``).
 * **geo / hostile** variants of a pair: offsets of 1e3 .. 1e7 m (UTM-like), a stray point at
   1e6 m or 1e30 m, duplicated points, clouds scaled by 1e30 and 1e300, float32 coordinates at
   a 1e9 m offset.
@@ -23,8 +29,9 @@ Every pair is ``(src (N, 3) float64, tgt (M, 3) float64, T_gt (4, 4) float64)`` 
 
 Usage::
 
-    python benchmarks/scan_sim.py --out DIR [--sets street object geo hostile]
+    python benchmarks/scan_sim.py --out DIR [--sets street object room geo hostile]
         [--sizes 42000 1100000] [--cache DIR] [--seed 0] [--preview]
+        [--rooms r0-tls-1.5m ...] [--room-points 20000]
 
 writes each pair as ``DIR/<name>/{source.ply,target.ply,T_gt.txt,info.json}`` (float64 PLY
 where float32 would lose more than a millionth of the cloud's size, else float32).
@@ -44,6 +51,7 @@ from pathlib import Path
 
 from _scan_sim_geometry import Pair, apply, raycasting_scene, rigid, rotation_xyz, scan
 from _scan_sim_object import DATA, OBJECT_SEQUENCE, OBJECT_VOXEL_FRACTION, ROOT, object_pair
+from _scan_sim_room_scan import ROOM_PAIRS, room_pair
 from _scan_sim_street import (
     STREET_VOXEL,
     lidar_directions,
@@ -65,6 +73,7 @@ __all__ = [  # what the tests and scaling.py use, and the command
     "object_pair",
     "raycasting_scene",
     "rigid",
+    "room_pair",
     "rotation_xyz",
     "scaled",
     "scan",
@@ -75,7 +84,8 @@ __all__ = [  # what the tests and scaling.py use, and the command
     "write_pair",
 ]
 
-SETS = ("street", "object", "geo", "hostile")
+SETS = ("street", "object", "room", "geo", "hostile")
+ROOM_NAMES = [name for name, *_ in ROOM_PAIRS]
 
 
 def _parse(argv: list[str] | None) -> argparse.Namespace:
@@ -113,6 +123,17 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
         default=[45.0],
         help="object: degrees between the two viewpoints",
     )
+    parser.add_argument(
+        "--rooms",
+        nargs="+",
+        default=ROOM_NAMES,
+        choices=ROOM_NAMES,
+        metavar="NAME",
+        help="room: the pairs (default: all of _scan_sim_room_scan.ROOM_PAIRS)",
+    )
+    parser.add_argument(
+        "--room-points", type=int, help="room: points per scan of every pair (default: its own)"
+    )
     parser.add_argument("--data", type=Path, default=DATA, help="the shared data folder")
     parser.add_argument("--cache", type=Path, help="folder for the fused object mesh")
     parser.add_argument(
@@ -149,8 +170,26 @@ def _bases(args: argparse.Namespace) -> dict[str, tuple[Pair, dict]]:
     return pairs
 
 
+def _rooms(args: argparse.Namespace) -> None:
+    """The room pairs asked, and ``pairs.txt`` listing them (``source target out/<name>.txt``)."""
+    lines = []
+    for name, seed, layout, sensor, points, distance, cross in ROOM_PAIRS:
+        if name not in args.rooms:
+            continue
+        points = args.room_points or points
+        pair, info = room_pair(seed, layout, sensor, points, distance, cross, args.seed)
+        written = write_pair(args.out / name, pair, info)
+        lines.append(f"{name}/source.ply {name}/target.ply out/{name}.txt")
+        print(f"{name}: {written['points_src']} + {written['points_tgt']} points, "
+              f"overlap {info['overlap']:.2f}", file=sys.stderr)  # fmt: skip
+    (args.out / "pairs.txt").write_text("\n".join(lines) + "\n")
+    (args.out / "out").mkdir(exist_ok=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     args = _parse(argv)
+    if "room" in args.sets:
+        _rooms(args)
     bases = _bases(args)
     variants: dict[str, Variant] = {}
     if "geo" in args.sets:
