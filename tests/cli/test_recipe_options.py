@@ -35,6 +35,7 @@ FLAGS = {
     "num_correspondences": "--num-correspondences",
     "min_confidence": "--min-confidence",
     "fallback": "--fallback",
+    "turns": "--turns",
     "seed": "--seed",
 }
 #: fields whose default the help states (weights: the shipped ones, no value)

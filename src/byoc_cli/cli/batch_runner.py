@@ -100,6 +100,7 @@ class PairRunner:
             features_for,
             smooth_first,
         )
+        from byoc_cli.pipeline.turns import source_turner
 
         started = time.perf_counter()
         timings: dict[str, float] = {}
@@ -126,8 +127,11 @@ class PairRunner:
             def learned(second_opinion: bool = True):
                 src = self._features(cloud_src, voxels[0], timings, "features_src")
                 tgt = self._features(cloud_tgt, voxels[1], timings, "features_tgt")
-                match = self.registrar.match if second_opinion else self.registrar.match_alone
-                return match(src, tgt)
+                if not second_opinion:
+                    return self.registrar.match_alone(src, tgt)
+                units = self.load["factors"][0][1]
+                turned = source_turner(self.registrar, src, units, cloud_src[1], voxels[0])
+                return self.registrar.match(src, tgt, turned=turned)
 
             if picked is not None and picked.first == "fpfh":
                 second = (lambda: learned(False)) if LEARNED_SECOND_OPINION else None

@@ -73,8 +73,14 @@ def recorded_below(recorded: dict, gate: float) -> bool:
 
 
 def init_reason(record: dict) -> str | None:
-    """Why a pair registered from its initial pose did not pass other than its confidence
-    (the result left the trust region; None: it did not, or there was no initial pose)."""
+    """Why a pair did not pass other than its confidence: it is ambiguous (a turned try fits
+    as well elsewhere), or it was registered from its initial pose and left the trust region;
+    None: neither."""
+    from byoc_cli.cli.pairwise import ambiguity
+
+    turns = record.get("turns") or {}
+    if turns.get("ambiguous"):
+        return ambiguity(turns)
     init = record.get("init") or {}
     if not init:
         return None

@@ -296,6 +296,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "voxel_choice": result.voxel_choice,
         "fallback": result.fallback,
         "features_choice": result.features_choice,
+        "turns": result.turns,
         "scale": run["scale"],
         "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
         "source_scale": run["factors"][0],
@@ -330,3 +331,11 @@ class StageProgress:
     def close(self) -> None:
         if self.progress is not None:
             self.progress.__exit__(None, None, None)
+
+
+def ambiguity(turns: dict) -> str:
+    """``ambiguous: ...`` of a result's ``turns`` report: the confidences of the tries that end
+    apart (:mod:`byoc_cli.pipeline.turns`)."""
+    tries = sorted(turns["tries"], key=lambda t: -t["confidence"])
+    shown = ", ".join(f"{t['confidence']:.3f} turned {t['degrees']:g} deg" for t in tries[:3])
+    return f"ambiguous: the source fits at more than one pose (confidences {shown})"

@@ -117,6 +117,16 @@ def _options() -> dict[str, Callable]:
             "confident result; the report says which ran (docs/confidence.md). none: never. "
             f"{_default('gate.fallback')}",
         ),
+        "turns": click.option(
+            "--turns/--no-turns",
+            default=None,
+            help="With byoc features: when the confidence is below 0.95, extract the source's "
+            "features again turned 90, 180 and 270 deg about its up axis and keep the most "
+            "confident result; a result that fits as well turned elsewhere exits 3 as "
+            "ambiguous. For scans turned far apart about the vertical (terrestrial scanner "
+            "stations, turntables): docs/registering.md, Turned scans. "
+            f"{_default('matching.turns')}",
+        ),
         "seed": click.option(
             "--seed",
             type=SEED,
@@ -149,6 +159,7 @@ FIELDS = {
     "num_correspondences": "matching.correspondences",
     "min_confidence": "gate.min_confidence",
     "fallback": "gate.fallback",
+    "turns": "matching.turns",
     "seed": "seed",
 }
 
@@ -172,6 +183,7 @@ PAIRWISE = (
     "num_correspondences",
     "min_confidence",
     "fallback",
+    "turns",
     "seed",
 )
 

@@ -34,6 +34,7 @@ from byoc_cli.cli.pair_files import (
     write_pair_qc,
 )
 from byoc_cli.cli.pairwise import (
+    ambiguity,
     check_depth_inputs,
     cloud_factors,
     format_length,
@@ -223,6 +224,8 @@ def failure_line(result, min_confidence: float, unit: str | None) -> str:
     """The line ``byoc register`` prints on stderr when it exits 3: why T is likely wrong."""
     init = result.init or {}
     written = "T is likely wrong (written all the same)"
+    if (result.turns or {}).get("ambiguous"):
+        return f"byoc: {ambiguity(result.turns)}: {written}"
     if init.get("check") == "disagrees":
         return (
             f"byoc: the global result lies {_moved(init['correction'], unit)} from --init, "

@@ -101,11 +101,15 @@ class MatchingRecipe:
         correspondences: the top-k Lowe-ratio matches kept per direction (2k in all; the
             ratio is each match's weight, no threshold).
         mutual: keep only mutual nearest neighbours before the top-k selection.
+        turns: learned features only: when the first result is below 0.95, extract the
+            source's features again turned 90, 180 and 270 deg about its up axis and keep
+            the most confident (:mod:`byoc_cli.pipeline.turns`).
     """
 
     max_points: int
     correspondences: int
     mutual: bool = False
+    turns: bool = False
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from byoc_cli.pipeline.memo import RefineClouds
 from byoc_cli.pipeline.pair import match_pair, same_voxel, scan_lines
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.pipeline.sequence import register_either
+from byoc_cli.pipeline.turns import with_turns
 from byoc_cli.threads import in_worker, side_by_side
 
 if TYPE_CHECKING:
@@ -44,17 +45,15 @@ class Registrar(Featurizer):
             recipe's (without a recipe: the :data:`~byoc_cli.pipeline.recipe.DEFAULT_PRESET`).
         weights: for byoc: a weights file, a :func:`~byoc_cli.pipeline.inputs.load_weights`
             result, or None for the recipe's (the shipped weights unless it names a file).
-        voxel_size: ``"auto"``: read from each pair's clouds, in their own units
-            (:mod:`byoc_cli.pipeline.scale`); a number: that voxel, in the units of the
-            points; None: the features' own voxel (the weights' for byoc, the preset's for
-            fpfh), with the unit check of :func:`~byoc_cli.pipeline.inputs.load_cloud`. Not
-            given: the recipe's (``"auto"`` in the presets).
+        voxel_size: ``"auto"``: read from each pair's clouds (:mod:`byoc_cli.pipeline.scale`);
+            a number: that voxel, in the points' units; None: the features' own voxel, with
+            the unit check of :func:`~byoc_cli.pipeline.inputs.load_cloud`. Not given: the
+            recipe's (``"auto"`` in the presets).
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (cuda when available).
-        threads: worker threads, each running torch single-threaded (default: torch's
-            thread count, which the tool's thread policy sets to the usable cores).
-        fallback: ``"fpfh"``: when a learned registration's confidence is below
-            ``fallback_below``, register the pair again with FPFH features
-            (:mod:`byoc_cli.pipeline.fallback`) and keep the more confident of the two; None:
+        threads: worker threads, each running torch single-threaded (default: the usable
+            cores, torch's thread count under the tool's thread policy).
+        fallback: ``"fpfh"``: below ``fallback_below``, register the pair again with FPFH
+            (:mod:`byoc_cli.pipeline.fallback`) and keep the more confident result; None:
             never; ``"auto"``: the recipe's gate (``"fpfh"`` with byoc, None with fpfh).
         fallback_below: the confidence under which the fallback runs (None: the recipe's
             ``gate.min_confidence``, the default ``--min-confidence``).
@@ -86,6 +85,7 @@ class Registrar(Featurizer):
         super().__init__(recipe, weights, resolve_device(device))
         self.fallback = None if recipe.gate.fallback == "none" else recipe.gate.fallback
         self.fallback_below = float(recipe.gate.min_confidence)
+        self.turns = recipe.matching.turns and self.features == "byoc"
         self.threads = threads or torch.get_num_threads()
         self._executor = None
         self._lock = threading.Lock()
@@ -103,9 +103,7 @@ class Registrar(Featurizer):
                 self._executor = worker_pool(self.threads)
             return self._executor
 
-    def prepare_refinement(
-        self, feats: Features, source: bool, target: bool, levels: Any = None
-    ) -> None:
+    def prepare_refinement(self, feats: Features, source: bool, target: bool, levels=None):
         """Build the refinement ``levels`` (default: all) of ``feats.cloud`` as a source, a
         target or both now, not in :meth:`match` (threads may build different levels at once)."""
         if feats.cloud is not None:
@@ -129,10 +127,8 @@ class Registrar(Featurizer):
         num_correspondences: int | None = None,
         seed: int | None = None,
     ) -> RegistrationRecipe:
-        """The registrar's recipe changed by :meth:`match`'s arguments (None: unchanged).
-
-        Raises:
-            ValueError: a value out of its range (:class:`~byoc_cli.pipeline.recipe.RecipeError`).
+        """The registrar's recipe changed by :meth:`match`'s arguments (None: unchanged);
+        ``ValueError`` (:class:`~byoc_cli.pipeline.recipe.RecipeError`) for a value out of range.
         """
         return self.recipe.changed(
             fitting__estimator=estimator,
@@ -152,21 +148,21 @@ class Registrar(Featurizer):
         max_points: int | None = None,
         num_correspondences: int | None = None,
         seed: int | None = None,
+        turned: Any = None,
     ) -> Registration:
         """Register two featured clouds: correspondences, the robust fit, the refinement, the
-        judgement (:func:`~byoc_cli.pipeline.pair.match_pair`) and, below the gate, the
-        fallback's second opinion.
+        judgement (:func:`~byoc_cli.pipeline.pair.match_pair`), the source turned
+        (:func:`~byoc_cli.pipeline.turns.with_turns`) and the fallback's second opinion.
 
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale; with an
                 auto voxel, clouds extracted one at a time are extracted again at the pair's).
-            estimator: ``"ransac"``, ``"procrustes"`` or ``"sc2"``; None (every argument): the
-                recipe's.
-            refine: ``"none"`` or ``"multiscale"`` (runs on ``Features.cloud`` where both
-                have one).
+            estimator: ``"ransac"``, ``"procrustes"`` or ``"sc2"``; None (all): the recipe's.
+            refine: ``"none"`` or ``"multiscale"`` (on ``Features.cloud`` where both have one).
             max_points: seeded random subset per cloud that enters matching (0 = all).
             num_correspondences: top-k ratio-test matches kept per direction.
             seed: seeds every random choice.
+            turned: the source's features turned (:func:`~byoc_cli.pipeline.turns.source_turner`).
 
         Raises:
             RegistrationError: no correspondences, or no transform could be fitted.
@@ -175,13 +171,17 @@ class Registrar(Featurizer):
         settings = {"estimator": estimator, "refine": refine, "max_points": max_points}
         settings.update(num_correspondences=num_correspondences, seed=seed)
         registration = self.match_alone(src, tgt, **settings)
-        if self.fallback and registration.confidence < self.fallback_below:
-            # the recipe of the run (its gate ran the fallback), whichever result is kept
-            recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
-            kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
-            passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
-            return kept._replace(recipe=registration.recipe, passed=passed)
-        return registration
+        first = registration.confidence  # the fallback answers to the first learned result
+        registration, done = with_turns(self, registration, (src, tgt), turned, settings)
+        if done:
+            return registration
+        if not self.fallback or first >= self.fallback_below:
+            return registration
+        # the recipe of the run (its gate ran the fallback), whichever result is kept
+        recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
+        kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
+        passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
+        return kept._replace(recipe=registration.recipe, passed=passed)
 
     def match_alone(self, src: Features, tgt: Features, **settings: Any) -> Registration:
         """:meth:`match` without the fallback's second opinion, whatever the confidence (for a

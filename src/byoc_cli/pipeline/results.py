@@ -89,6 +89,10 @@ class Registration(NamedTuple):
             smooth pair (when the learned features ran as its second opinion, ``fallback``
             says what they reached: ``features: "byoc"``, ``first_confidence``: FPFH's);
             None otherwise.
+        turns: when the learned features were also tried on the source turned about its up
+            axis (:mod:`byoc_cli.pipeline.turns`): ``up_axis``, the ``confidence`` of each turn
+            (degrees as keys, ``"0"`` the first) and ``kept_deg`` (0: the first kept); None
+            otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -117,3 +121,4 @@ class Registration(NamedTuple):
     path: str = "global"
     init: dict | None = None
     features_choice: dict | None = None
+    turns: dict | None = None

@@ -17,6 +17,7 @@ from byoc_cli.pipeline.feature_choice import (
 from byoc_cli.pipeline.local import InitialPose, LocalPair, check_global, register_local
 from byoc_cli.pipeline.memo import InPlace, all_done
 from byoc_cli.pipeline.results import Features, Registration
+from byoc_cli.pipeline.turns import source_turner
 from byoc_cli.threads import in_worker
 
 
@@ -83,8 +84,10 @@ def register_pair(
         (src, f_src), (tgt, f_tgt) = (job.result() for job in all_done(jobs))
         steps.update(features_src=f_src["features"], features_tgt=f_tgt["features"])
         steps.update(prepare_src=f_src["prepare"], prepare_tgt=f_tgt["prepare"])
-        match = made.match if second_opinion else made.match_alone
-        return pool.submit(match, src, tgt, **settings).result()
+        if not second_opinion:
+            return pool.submit(made.match_alone, src, tgt, **settings).result()
+        turned = source_turner(made, src, scale, src_name, voxels[0])
+        return pool.submit(made.match, src, tgt, turned=turned, **settings).result()
 
     if picked is not None and picked.first == "fpfh":
         seed = settings.get("seed")
