@@ -21,7 +21,9 @@ the scanner, and in distance (up to 15 %). Range noise grows with the incidence 
 (``noise / cos``, capped at 5x); at a depth discontinuity (a neighbour ray misses or hits more
 than ``JUMP`` of the size farther) a share of the returns are mixed pixels: the range moves
 towards the far side (a missing neighbour: up to ``TRAIL`` of the size behind), as a laser
-spot that straddles the edge reports.
+spot that straddles the edge reports. ``outliers``: a share of all the returns (anywhere on
+the object) lie off the surface along their ray, up to ``TRAIL`` of the size in front or
+behind (spurious returns, multipath).
 """
 
 from __future__ import annotations
@@ -193,10 +195,11 @@ def _scanner_poses(view: str, angle_deg: float, rng: np.random.Generator, size: 
     return poses
 
 
-def laser_scan(scene, T_world_scanner, size, resolution, noise, rng):
+def laser_scan(scene, T_world_scanner, size, resolution, noise, rng, outliers=0.0):
     """``(N, 3)`` returns in the scanner's frame: a square pinhole grid covering the object,
     rays ``size / resolution`` apart at the object, range noise ``noise / cos(incidence)``
-    (capped at 5x), mixed pixels at the silhouette."""
+    (capped at 5x), mixed pixels at the silhouette, a share ``outliers`` of the returns off
+    the surface along their ray."""
     dist = float(np.linalg.norm(T_world_scanner[:3, 3]))
     half_fov = np.degrees(np.arctan(0.8 * size / dist))
     dirs = pinhole_directions(half_fov, size / resolution / dist)
@@ -217,6 +220,9 @@ def laser_scan(scene, T_world_scanner, size, resolution, noise, rng):
         behind = np.where(np.isfinite(far), far - t, TRAIL * size)
     mixed = edge & (rng.random(len(t)) < MIXED_SHARE)
     ranges[mixed] = t[mixed] + rng.random(int(mixed.sum())) * behind[mixed]
+    if outliers > 0:  # drawn only when asked: the scans without them stay as they were
+        stray = hit & (rng.random(len(t)) < outliers)
+        ranges[stray] = t[stray] + rng.uniform(-TRAIL, TRAIL, int(stray.sum())) * size
     return dirs[hit] * ranges[hit, None]
 
 
@@ -228,8 +234,10 @@ def shape_pair(
     resolution: float = 400.0,
     noise: float = 1e-4,
     seed: int = 0,
+    outliers: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Two laser scans of one free-form object (:func:`shape_mesh`) and the truth.
+    """Two laser scans of one free-form object (:func:`shape_mesh`) and the truth; a share
+    ``outliers`` of each scan's returns off the surface (:func:`laser_scan`).
 
     Returns:
         ``(src (N, 3), tgt (M, 3), T_gt (4, 4))`` float64: each scan in its scanner's frame
@@ -239,5 +247,5 @@ def shape_pair(
     scene = raycasting_scene(mesh)
     rng = np.random.default_rng([seed, 8, SHAPES.index(kind), VIEWS.index(view)])
     poses = _scanner_poses(view, angle_deg, rng, size)
-    src, tgt = (laser_scan(scene, T, size, resolution, noise, rng) for T in poses)
+    src, tgt = (laser_scan(scene, T, size, resolution, noise, rng, outliers) for T in poses)
     return src, tgt, relative(poses[0], poses[1])

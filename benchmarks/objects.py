@@ -5,7 +5,7 @@ Three steps:
 
 * ``make --out DIR``: simulated pairs of free-form objects (benchmarks/_scan_sim_shapes.py:
   ``--shapes`` x ``--views`` x ``--angles`` x ``--seeds``, ``--sizes`` in turn (10, 20 and
-  30 cm), ``--noise`` of range (0.1 mm)),
+  30 cm), ``--noise`` of range (0.1 mm), ``--outliers`` share of returns off the surface (0)),
   each ``DIR/<name>/{source.ply,target.ply,T_gt.txt,info.json}``, and ``DIR/pairs.txt``
   (``source target out/<name>.txt``). ``info.json``'s ``voxel`` is the hand-set voxel
   (size / 50).
@@ -32,7 +32,7 @@ the simulated rooms of benchmarks/scan_sim.py's ``room`` set, whose ``pairs.txt`
 are judged alike, their size the room's longest side).
 
 Usage: python benchmarks/objects.py make --out DIR [--shapes blob torus ...] [--views ...]
-           [--angles 30 60] [--seeds 0 1] [--sizes 0.1 0.2 0.3] [--noise 1e-4]
+           [--angles 30 60] [--seeds 0 1] [--sizes 0.1 0.2 0.3] [--noise 1e-4] [--outliers 0.02]
        python benchmarks/objects.py make-tabletop --out DIR [--cache C]
        python benchmarks/objects.py run DIR [--repeats 3] [--baseline ../main/src]
            [--byoc-args "--fallback none"]
@@ -118,9 +118,11 @@ def make(args: argparse.Namespace) -> None:
                     size = args.sizes[k % len(args.sizes)]
                     k += 1
                     name = f"{kind}-{view}-{angle:g}-s{seed}"
-                    pair = shape_pair(kind, angle, size, view, noise=args.noise, seed=seed)
+                    pair = shape_pair(kind, angle, size, view, noise=args.noise, seed=seed,
+                                      outliers=args.outliers)  # fmt: skip
                     info = {"kind": "shape", "shape": kind, "view": view, "angle_deg": angle,
-                            "seed": seed, "size": size, "voxel": size / 50}  # fmt: skip
+                            "seed": seed, "size": size, "voxel": size / 50,
+                            "noise": args.noise, "outliers": args.outliers}  # fmt: skip
                     write_pair(args.out / name, pair, info)
                     lines.append(f"{name}/source.ply {name}/target.ply out/{name}.txt")
                     print(f"{name}: {len(pair[0])} + {len(pair[1])} points", file=sys.stderr)
@@ -336,6 +338,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
     p.add_argument("--sizes", nargs="+", type=float, default=list(SIZES), help="m, in turn")
     p.add_argument("--noise", type=float, default=1e-4, help="range noise, m (default 0.1 mm)")
+    p.add_argument("--outliers", type=float, default=0.0, help="share of returns off the surface")
     p = sub.add_parser("make-tabletop")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--sizes", nargs="+", type=float, default=list(SIZES), help="m")
