@@ -21,7 +21,6 @@ from typing import Any
 
 import numpy as np
 
-from byoc_cli.geometry.orientation import turn_about, up_axis
 from byoc_cli.pipeline.results import Features, Registration
 
 #: the turns are tried when the first result's confidence is below this
@@ -95,6 +94,8 @@ def best_turn(
     close to it in confidence ends elsewhere (a scene that fits turned, as a room whose
     halves look alike). An ambiguous result does not pass.
     """
+    from byoc_cli.geometry.orientation import turn_about, up_axis
+
     start = time.perf_counter()
     centre = points.mean(axis=0)
     axis = up_axis(points - centre)
