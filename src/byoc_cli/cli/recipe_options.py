@@ -121,8 +121,8 @@ def _options() -> dict[str, Callable]:
             "--turns/--no-turns",
             default=None,
             help="With byoc features: when the confidence is below 0.95, extract the source's "
-            "features again turned 90, 180 and 270 deg about its up axis and keep the most "
-            "confident result; a result that fits as well turned elsewhere exits 3 as "
+            "features again turned by 60 to 300 deg (every 60) about its up axis and keep the "
+            "most confident result; a result that fits as well turned elsewhere exits 3 as "
             "ambiguous. For scans turned far apart about the vertical (terrestrial scanner "
             "stations, turntables): docs/registering.md, Turned scans. "
             f"{_default('matching.turns')}",

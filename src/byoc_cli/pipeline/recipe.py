@@ -102,8 +102,8 @@ class MatchingRecipe:
             ratio is each match's weight, no threshold).
         mutual: keep only mutual nearest neighbours before the top-k selection.
         turns: learned features only: when the first result is below 0.95, extract the
-            source's features again turned 90, 180 and 270 deg about its up axis and keep
-            the most confident (:mod:`byoc_cli.pipeline.turns`).
+            source's features again turned by 60 to 300 deg (every 60) about its up axis and
+            keep the most confident (:mod:`byoc_cli.pipeline.turns`).
     """
 
     max_points: int

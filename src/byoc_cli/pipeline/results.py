@@ -90,9 +90,9 @@ class Registration(NamedTuple):
             says what they reached: ``features: "byoc"``, ``first_confidence``: FPFH's);
             None otherwise.
         turns: when the learned features were also tried on the source turned about its up
-            axis (:mod:`byoc_cli.pipeline.turns`): ``up_axis``, the ``confidence`` of each turn
-            (degrees as keys, ``"0"`` the first) and ``kept_deg`` (0: the first kept); None
-            otherwise.
+            axis (:mod:`byoc_cli.pipeline.turns`): ``up_axis``, the ``tries`` (each turn's
+            ``degrees``, ``confidence`` and ``T_tgt_src``; 0 the first), ``kept_deg`` and
+            whether the result is ``ambiguous`` (then it does not pass); None otherwise.
     """
 
     T_tgt_src: np.ndarray

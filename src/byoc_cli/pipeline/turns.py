@@ -3,11 +3,11 @@
 The learned features were trained on views turned by at most 60 deg
 (:mod:`byoc_cli.training.config`, ``aug_rotation_deg``); two scans of a room taken by a
 terrestrial scanner from two stations, or an object turned on a turntable, differ by any
-angle about the vertical, and there the features of the two clouds stop matching: on Kinect
-pairs whose source is turned 180 deg about the vertical, 8 of 18 came back wrong with exit 0
-(``benchmarks/turns.py``). When the first result is below :data:`TURN_BELOW`, the source's
-features are extracted again from the source turned by :data:`TURNS_DEG` about its up axis
-(:func:`~byoc_cli.geometry.orientation.up_axis`), each matched against the target's features
+angle about the vertical, and there the features of the two clouds stop matching: on the 18
+Kinect and RealSense pairs of ``benchmarks/turns.py`` with the source turned 180 deg about its
+up axis, 4 came back wrong with exit 0. When the first result is below :data:`TURN_BELOW`,
+the source's features are extracted again from the source turned by :data:`TURNS_DEG` about its
+up axis (:func:`~byoc_cli.geometry.orientation.up_axis`), each matched against the target's features
 as they are (their positions stay the source's own, so the fit, the refinement and the
 verdict see the same clouds), and the most confident result replaces the first when it is
 more confident by :data:`TURN_GAIN`.
@@ -128,9 +128,7 @@ def best_turn(
 
 def _same_place(T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
     """Whether ``T_a`` and ``T_b (4, 4)`` lie within SAME_DEG and SAME_VOXELS voxels."""
-    from byoc_cli.pipeline.posegraph import rotation_angle_deg
+    from byoc_cli.pipeline.posegraph import transform_difference
 
-    D = np.linalg.inv(T_a) @ T_b
-    return (
-        rotation_angle_deg(D[:3, :3]) < SAME_DEG and np.linalg.norm(D[:3, 3]) < SAME_VOXELS * voxel
-    )
+    degrees, distance = transform_difference(T_a, T_b)
+    return degrees < SAME_DEG and distance < SAME_VOXELS * voxel
