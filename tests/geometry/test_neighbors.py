@@ -1,4 +1,4 @@
-"""Voxel-grid neighbourhoods: averages, neighbour cells, nearest points, normals."""
+"""Voxel-grid neighbourhoods: averages, neighbour cells, nearest points."""
 
 from __future__ import annotations
 
@@ -23,8 +23,6 @@ from byoc_cli.geometry.neighbors import (
     nearest_candidates,
     nearest_of,
     neighbor_positions,
-    smallest_eigenvector,
-    surface_normals,
     voxel_average,
     voxel_means,
 )
@@ -242,62 +240,6 @@ def test_nearest_of_with_no_candidates():
     pts = _cloud(10, 0)
     out = nearest_of(CellIndex(pts, 0.1), pts[:2], torch.full((2, 4), -1, dtype=torch.int64))
     assert torch.isinf(out.distance2).all()
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_normals_of_a_noisy_plane_and_a_sphere(seed):
-    g = torch.Generator().manual_seed(seed)
-    normal = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=torch.float64), dim=0)
-    basis = torch.linalg.qr(
-        torch.cat([normal[:, None], torch.randn(3, 2, dtype=torch.float64, generator=g)], 1)
-    ).Q
-    uv = (torch.rand(20_000, 2, generator=g, dtype=torch.float64) - 0.5) * 2.0
-    plane = (
-        uv @ basis[:, 1:].T
-        + 0.002 * torch.randn(20_000, 1, generator=g, dtype=torch.float64) * normal
-    )
-    n = surface_normals(plane, 0.03)
-    assert (n.norm(dim=1) - 1).abs().max() < 1e-9
-    cos = (n @ normal).abs()
-    assert float(cos.median()) > math.cos(math.radians(2))
-    assert float(cos.quantile(0.01)) > math.cos(math.radians(10))  # thin cells at the rim
-    sphere = torch.nn.functional.normalize(
-        torch.randn(40_000, 3, generator=g, dtype=torch.float64), dim=1
-    )
-    n = surface_normals(sphere, 0.03)
-    assert float((n * sphere).sum(1).abs().median()) > math.cos(math.radians(3))
-
-
-@settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 10_000), flat=st.sampled_from([1.0, 1e-3, 1e-6, 0.0]))
-def test_smallest_eigenvector_matches_eigh(seed, flat):
-    g = torch.Generator().manual_seed(seed)
-    R = torch.linalg.qr(torch.randn(64, 3, 3, generator=g, dtype=torch.float64)).Q
-    lam = torch.rand(64, 3, generator=g, dtype=torch.float64) + 0.1
-    lam[:, 0] = lam[:, 0] * flat  # from isotropic-ish to exactly planar
-    A = R @ torch.diag_embed(lam) @ R.transpose(1, 2)
-    v = smallest_eigenvector(A)
-    ref = torch.linalg.eigh(A).eigenvectors[:, :, 0]
-    assert torch.allclose(v.norm(dim=1), torch.ones(64, dtype=torch.float64))
-    # the residual of the eigen-equation is what matters where eigenvalues are close
-    smallest = torch.linalg.eigvalsh(A)[:, 0]
-    residual = (A @ v[:, :, None])[:, :, 0] - smallest[:, None] * v
-    assert float(residual.norm(dim=1).max()) < 1e-8
-    separated = (torch.linalg.eigvalsh(A)[:, 1] - smallest) > 1e-3
-    assert torch.allclose(
-        (v * ref).sum(1).abs()[separated],
-        torch.ones(int(separated.sum()), dtype=torch.float64),
-        atol=1e-8,
-    )
-
-
-def test_smallest_eigenvector_of_isotropic_and_double_roots():
-    A = torch.stack(
-        [torch.eye(3), torch.diag(torch.tensor([1.0, 1.0, 5.0])), torch.zeros(3, 3)]
-    ).double()
-    v = smallest_eigenvector(A)
-    assert torch.allclose(v.norm(dim=1), torch.ones(3, dtype=torch.float64))
-    assert abs(float(v[1, 2])) < 1e-9  # in the plane of the double root
 
 
 def test_a_cell_index_refuses_a_cell_fuller_than_its_bound():

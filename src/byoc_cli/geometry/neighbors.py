@@ -1,9 +1,9 @@
-"""Voxel-grid neighbourhoods in plain PyTorch: cell averages, surface normals, near points.
+"""Voxel-grid neighbourhoods in plain PyTorch: cell averages, cell keys, near points.
 
 What the multiscale refinement needs without a k-d tree (and without importing open3d,
 whose import alone takes longer than the refinement): clouds thinned to one average point
-per voxel, a normal per point from the points of the surrounding cells, and, for moving
-query points, the nearest points of a cloud among those in the cells around them.
+per voxel (their normals: :mod:`byoc_cli.geometry.normals`), and, for moving query points,
+the nearest points of a cloud among those in the cells around them.
 
 Cells are ``floor((p - origin) / size)`` with the origin on the cloud's lowest cell corner
 (a multiple of ``size``), so georeferenced coordinates (hundreds of kilometres) lose nothing;
@@ -53,7 +53,7 @@ def grid_origin(points: torch.Tensor, size: float) -> torch.Tensor:
 def _cells(points: torch.Tensor, size: float, origin: torch.Tensor) -> torch.Tensor:
     if points.ndim != 2 or points.shape[-1] != 3:
         raise ShapeError(f"points must be (N, 3), got {tuple(points.shape)}")
-    return torch.floor((points - origin) / size).to(torch.int64)
+    return (points - origin).div_(size).floor_().to(torch.int64)
 
 
 def neighbor_positions(
@@ -343,106 +343,3 @@ def candidate_coordinates(index: CellIndex, candidates: torch.Tensor) -> torch.T
     (-1: the point at infinity), for :func:`nearest_of`."""
     flat = torch.where(candidates < 0, index.none, candidates).reshape(-1)
     return index.columns.index_select(1, flat).view(3, *candidates.shape)
-
-
-def surface_normals(points: torch.Tensor, size: float, min_points: int = 8) -> torch.Tensor:
-    """Unit normals ``(N, 3)`` of ``points (N, 3)``: the least-variance direction of the
-    points in the 27 cells of ``size`` around each point's cell (a box 3 cells wide; one
-    normal per cell, shared by its points). Where that box holds fewer than ``min_points``
-    points (sparse samples: a few points fit any plane) the box of twice the cell is used,
-    and so on up to 8 times the cell. The sign is arbitrary."""
-    normals, count = _cell_normals(points, size)
-    for scale in (2.0, 4.0, 8.0):
-        weak = count < min_points
-        if not bool(weak.any()):
-            break
-        wider, wider_count = _cell_normals(points[weak], size * scale, points)
-        normals[weak], count[weak] = wider, wider_count
-    return normals
-
-
-def _cell_normals(
-    queries: torch.Tensor, size: float, points: torch.Tensor | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normals ``(Q, 3)`` of the 27-cell boxes around ``queries (Q, 3)`` from the moments of
-    ``points (N, 3)`` (default: the queries), and how many points each box holds ``(Q,)``."""
-    points = queries if points is None else points
-    origin = grid_origin(points, size)
-    keys = cell_keys(_cells(points, size, origin))
-    uniq, inverse = torch.unique(keys, return_inverse=True)
-    C = len(uniq)
-    centre = points.mean(dim=0) if len(points) else points.new_zeros(3)
-    p = points - centre
-    moments = torch.zeros(C + 1, 10, dtype=points.dtype)  # row C: an empty cell
-    moments[:C, 0].index_add_(0, inverse, torch.ones(len(p), dtype=points.dtype))
-    moments[:C, 1:4].index_add_(0, inverse, p)
-    x, y, z = p.unbind(dim=1)
-    products = torch.stack([x * x, x * y, x * z, y * y, y * z, z * z], dim=1)
-    moments[:C, 4:].index_add_(0, inverse, products)
-    # the boxes: around each occupied cell of the queries
-    own = _cells(queries, size, origin)
-    q_uniq, q_inverse = torch.unique(cell_keys(own), return_inverse=True)
-    q_cells = torch.zeros(len(q_uniq), 3, dtype=torch.int64)
-    q_cells.index_copy_(0, q_inverse, own)
-    pos = neighbor_positions(uniq, q_cells)  # (B, 27)
-    pos = torch.where(pos >= 0, pos, C)
-    total = moments[pos[:, 0]].clone()
-    for k in range(1, 27):
-        total += moments[pos[:, k]]
-    n = total[:, 0].clamp_min(1.0)
-    mean = total[:, 1:4] / n[:, None]
-    xx, xy, xz, yy, yz, zz = (total[:, 4 + i] / n for i in range(6))
-    cov = (
-        torch.stack(
-            [
-                torch.stack([xx, xy, xz], dim=1),
-                torch.stack([xy, yy, yz], dim=1),
-                torch.stack([xz, yz, zz], dim=1),
-            ],
-            dim=1,
-        )
-        - mean[:, :, None] * mean[:, None, :]
-    )
-    return smallest_eigenvector(cov)[q_inverse], total[:, 0][q_inverse]
-
-
-def smallest_eigenvector(A: torch.Tensor) -> torch.Tensor:
-    """Unit eigenvectors ``(B, 3)`` of the smallest eigenvalue of symmetric ``A (B, 3, 3)``,
-    in closed form (several times faster than ``torch.linalg.eigh`` on many small
-    matrices): the eigenvalue by the trigonometric solution of the characteristic cubic,
-    the vector as the longest cross product of two rows of ``A - lambda I``. Where that is
-    ill-defined (a nearly isotropic ``A``, or an exact double root) ``eigh`` decides."""
-    a00, a01, a02 = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
-    a11, a12, a22 = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
-    q = (a00 + a11 + a22) / 3
-    p1 = a01**2 + a02**2 + a12**2
-    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2 * p1
-    p = torch.sqrt(p2 / 6).clamp_min(1e-300)
-    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
-    b01, b02, b12 = a01 / p, a02 / p, a12 / p
-    det = (
-        b00 * (b11 * b22 - b12 * b12)
-        - b01 * (b01 * b22 - b12 * b02)
-        + b02 * (b01 * b12 - b11 * b02)
-    )
-    phi = torch.acos((det / 2).clamp(-1.0, 1.0)) / 3
-    smallest = q + 2 * p * torch.cos(phi + 2 * math.pi / 3)
-    eye = torch.eye(3, dtype=A.dtype)
-    M = A - smallest[:, None, None] * eye
-    crosses = torch.stack(
-        [
-            torch.linalg.cross(M[:, 0], M[:, 1]),
-            torch.linalg.cross(M[:, 0], M[:, 2]),
-            torch.linalg.cross(M[:, 1], M[:, 2]),
-        ],
-        dim=1,
-    )  # (B, 3, 3)
-    norms = crosses.norm(dim=2)
-    best, pick = norms.max(dim=1)
-    vector = crosses[torch.arange(len(A)), pick] / best.clamp_min(1e-300)[:, None]
-    # ill-conditioned: the rows of A - lambda I nearly parallel (or A nearly isotropic)
-    scale = (p * p).clamp_min(1e-300)
-    shaky = (best < 1e-6 * scale) | (p2 < 1e-24 * (q * q).clamp_min(1e-300))
-    if bool(shaky.any()):
-        vector[shaky] = torch.linalg.eigh(A[shaky]).eigenvectors[:, :, 0]
-    return vector

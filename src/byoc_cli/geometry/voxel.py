@@ -32,10 +32,15 @@ def voxel_keys(coords: torch.Tensor) -> torch.Tensor:
     Coordinates must lie in ``[-2**20, 2**20)``; that is +-26 km at 2.5 cm.
     """
     offset = 1 << 20
-    c = coords + offset
-    if bool(((c < 0) | (c >= (1 << 21))).any()):
-        raise ShapeError("voxel coordinates out of range (cloud too large for this voxel size)")
-    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+    if coords.numel():
+        low, high = torch.aminmax(coords)  # one pass instead of a mask per bound
+        if int(low) < -offset or int(high) >= offset:
+            raise ShapeError("voxel coordinates out of range (cloud too large for this voxel size)")
+    x, y, z = (coords + offset).unbind(dim=1)
+    keys = x << 42
+    keys |= y << 21
+    keys |= z
+    return keys
 
 
 def voxelize(points: torch.Tensor, voxel_size: float) -> VoxelGrid:

@@ -15,12 +15,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from byoc_cli.geometry.neighbors import (
-    CellIndex,
-    surface_normals,
-    voxel_average,
-    voxel_means,
-)
+from byoc_cli.geometry.neighbors import CellIndex, voxel_average, voxel_means
+from byoc_cli.geometry.normals import surface_normals
 
 #: (voxel, correspondence distance) per level, in multiples of the feature voxel size
 LEVELS = ((1.0, 2.0), (0.5, 1.0), (0.4, 0.6))
