@@ -149,6 +149,7 @@ def rgbd(args) -> None:
             )
         )
         passed = "pass" if r.passed else "fail"
+        print(f"  cue structure_rival {r.cues.get('structure_rival')}")
         verdict = f"{'right' if ok else 'WRONG'} {rot:5.1f} {r.confidence:.2f} {passed}"
         print(
             _row(
