@@ -21,6 +21,7 @@ from byoc_cli.errors import RegistrationError
 from byoc_cli.fitting import randomized_procrustes, ransac, spatial_compatibility
 from byoc_cli.pipeline.refine import Refinement, measure_fit, refine_multiscale
 from byoc_cli.pipeline.restarts import restart_refinement
+from byoc_cli.pipeline.structure_check import RIVAL_GAIN, VETOED_CONFIDENCE, structure_rival
 from byoc_cli.pipeline.verdict import NO_RESTARTS, Judge, Verdict
 
 if TYPE_CHECKING:
@@ -84,8 +85,30 @@ class Solver:
             )
             start = timer("restarts", start)
             verdict = judge(refinement, restart_cues)
-            timer("verify", start)
+            start = timer("verify", start)
+        if verdict.confidence >= config.min_confidence:
+            verdict = self.check_structure(refinement.T_tgt_src, verdict)
+            timer("structure", start)
         return refinement, verdict
+
+    def check_structure(self, T: torch.Tensor, verdict: Verdict) -> Verdict:
+        """``verdict`` with the cue ``structure_rival`` (:func:`structure_rival`), its
+        confidence capped at :data:`VETOED_CONFIDENCE` when a turned rival fits the clutter
+        better by :data:`RIVAL_GAIN`."""
+        rival = structure_rival(
+            self.src.points,
+            self.tgt.points,
+            T,
+            self.voxel_size,
+            self.full,
+            self.refine_voxel,
+            self.parallel,
+        )
+        cues = {**verdict.cues, "structure_rival": rival}
+        confidence = verdict.confidence
+        if rival > RIVAL_GAIN:
+            confidence = min(confidence, VETOED_CONFIDENCE)
+        return verdict._replace(cues=cues, confidence=confidence)
 
 
 def run_restarts(clouds, refinement: Refinement, voxel_size: float, parallel):

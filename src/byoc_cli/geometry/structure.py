@@ -1,0 +1,193 @@
+"""A cloud's structure (the few large planes along its main surface directions: a room's floor,
+ceiling and walls) and the fit of what is not structure under a transform.
+
+A room turned 90 or 180 deg onto itself about its up axis fits its floor, ceiling and walls
+as well as the truth does; what stands in the room (tables, shelves, boxes) does not. So the
+share of a source's non-structure points that land next to the target under ``T``
+(:func:`clutter_fit`) tells such a turn from the truth where the overall fit cannot.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.orientation import _main_directions, _normals
+from byoc_cli.geometry.voxel import voxelize
+
+#: a point lies along a main direction when its normal is within this of it (either sign)
+STRUCTURE_CONE_DEG = 15.0
+#: a plane is structure when its slab (STRUCTURE_SLAB voxels thick) holds this share of the
+#: points at least
+STRUCTURE_MIN_SHARE, STRUCTURE_SLAB = 0.04, 2.0
+#: normals sampled for the main directions
+STRUCTURE_SAMPLES = 2000
+
+
+class Structure(NamedTuple):
+    """Result of :func:`structure`.
+
+    Attributes:
+        points: ``(S, 3)`` float64 the cloud's voxel representatives (first point per voxel).
+        mask: ``(S,)`` bool, True on a large plane along a main direction.
+        directions: ``(D, 3)`` the main directions, strongest first.
+        normals: ``(S, 3)`` the representatives' unit normals (either sign).
+        up: index into ``directions`` of the one the points spread least along.
+    """
+
+    points: np.ndarray
+    mask: np.ndarray
+    directions: np.ndarray
+    normals: np.ndarray
+    up: int
+
+
+def structure(
+    points: np.ndarray, voxel_size: float, generator: torch.Generator | None = None
+) -> Structure:
+    """The large planes of ``points (N, 3)`` at ``voxel_size``: of the voxel representatives,
+    those whose normal lies within :data:`STRUCTURE_CONE_DEG` of a main surface direction
+    (:func:`byoc_cli.geometry.orientation._main_directions` on a seeded sample of normals) and
+    whose offset along it falls in a slab of :data:`STRUCTURE_SLAB` voxels that holds at
+    least :data:`STRUCTURE_MIN_SHARE` of all representatives (with its two neighbouring
+    slabs: a plane that straddles a slab edge, or a noisy one).
+
+    Raises:
+        ShapeError: ``points`` is not ``(N, 3)`` with ``N >= 3``, or ``voxel_size <= 0``.
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise ShapeError(f"points must be (N, 3) with N >= 3, got {tuple(pts.shape)}")
+    if not voxel_size > 0:
+        raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
+    kept = pts[voxelize(torch.from_numpy(pts), voxel_size).point_index.numpy()]
+    if len(kept) < 3:
+        return Structure(
+            kept, np.zeros(len(kept), dtype=bool), np.eye(3)[2:], np.eye(3)[[2] * len(kept)], 0
+        )
+    normals = _normals(kept, kept)
+    generator = generator or torch.Generator().manual_seed(0)
+    sample = torch.randperm(len(kept), generator=generator)[:STRUCTURE_SAMPLES].numpy()
+    directions = np.stack(_main_directions(normals[sample]))
+    cone = math.cos(math.radians(STRUCTURE_CONE_DEG))
+    slab = STRUCTURE_SLAB * voxel_size
+    mask = np.zeros(len(kept), dtype=bool)
+    for d in directions:
+        along = np.abs(normals @ d) > cone
+        offset = kept @ d
+        bins = np.floor(offset / slab).astype(np.int64)
+        lo = bins.min()
+        counts = np.bincount(bins[along] - lo, minlength=bins.max() - lo + 1)
+        big = counts >= STRUCTURE_MIN_SHARE * len(kept)
+        near = big.copy()  # and the slabs either side
+        near[1:] |= big[:-1]
+        near[:-1] |= big[1:]
+        mask |= along & near[bins - lo]
+    spread = ((kept - kept.mean(axis=0)) @ directions.T).std(axis=0)
+    return Structure(kept, mask, directions, normals, int(np.argmin(spread)))
+
+
+class ClutterFit(NamedTuple):
+    """Result of :func:`clutter_fit`: shares of source representatives within the radius of
+    a target one under ``T``.
+
+    Attributes:
+        clutter: of the source's non-structure points, near any target point.
+        clutter_to_clutter: of the same, near a target non-structure point.
+        structure: of the source's structure points, near any target point.
+        overall: of all source representatives, near any target point.
+        clutter_share: the share of the source's representatives that are not structure.
+    """
+
+    clutter: float
+    clutter_to_clutter: float
+    structure: float
+    overall: float
+    clutter_share: float
+
+
+def clutter_fit(src: Structure, tgt: Structure, T: np.ndarray, radius: float) -> ClutterFit:
+    """The fit of ``src``'s non-structure points on ``tgt`` under ``T (4, 4)`` (``T_tgt_src``):
+    shares within ``radius`` of a target representative (:class:`ClutterFit`; NaN where a
+    part is empty)."""
+    from pykdtree.kdtree import KDTree
+
+    T = np.asarray(T, dtype=np.float64)
+    moved = src.points @ T[:3, :3].T + T[:3, 3]
+    near = KDTree(tgt.points).query(moved, k=1)[0] < radius
+    rest = tgt.points[~tgt.mask]
+    if len(rest):
+        near_rest = KDTree(rest).query(moved, k=1)[0] < radius
+    else:
+        near_rest = np.zeros(len(moved), dtype=bool)
+    clutter = ~src.mask
+
+    def share(hit: np.ndarray, where: np.ndarray) -> float:
+        return float(hit[where].mean()) if where.any() else math.nan
+
+    return ClutterFit(
+        clutter=share(near, clutter),
+        clutter_to_clutter=share(near_rest, clutter),
+        structure=share(near, src.mask),
+        overall=float(near.mean()),
+        clutter_share=float(clutter.mean()),
+    )
+
+
+def turned_alternatives(
+    src: Structure,
+    tgt: Structure,
+    T: np.ndarray,
+    voxel_size: float,
+    degrees: tuple[float, ...] = (90.0, 180.0, 270.0),
+) -> list[np.ndarray]:
+    """``T (4, 4)`` turned by each of ``degrees`` about the target's up axis through the
+    moved source's centre, then moved so that the source's large planes overlay the target's
+    along each main direction (:func:`_plane_shift`): where a room turned onto itself would
+    put the source, one ``(4, 4)`` per turn."""
+    from byoc_cli.geometry.orientation import turn_about
+
+    T = np.asarray(T, dtype=np.float64)
+    up = tgt.directions[tgt.up]
+    moved = src.points @ T[:3, :3].T + T[:3, 3]
+    normals = src.normals @ T[:3, :3].T
+    centre = moved.mean(axis=0)
+    out = []
+    for deg in degrees:
+        turn = turn_about(up, deg, centre)
+        p = (moved @ turn[:3, :3].T + turn[:3, 3])[src.mask]
+        n = (normals @ turn[:3, :3].T)[src.mask]
+        move = np.eye(4)
+        move[:3, 3] = _plane_shift(
+            p, n, tgt.points[tgt.mask], tgt.normals[tgt.mask], tgt.directions, voxel_size
+        )
+        out.append(move @ turn @ T)
+    return out
+
+
+def _plane_shift(p, n, q, m, directions, voxel_size) -> np.ndarray:
+    """``(3,)`` the translation that overlays the plane points ``p (P, 3)`` (normals ``n``)
+    on ``q (Q, 3)`` (normals ``m``): along each of ``directions (D, 3)``, the shift that
+    best correlates the histograms (bins of ``voxel_size``) of the offsets of the points whose
+    normal lies along it; least squares over the directions (zero when none has points)."""
+    cone = math.cos(math.radians(STRUCTURE_CONE_DEG))
+    rows, shifts = [], []
+    for d in directions:
+        a = p[np.abs(n @ d) > cone] @ d
+        b = q[np.abs(m @ d) > cone] @ d
+        if len(a) == 0 or len(b) == 0:
+            continue
+        lo = min(a.min(), b.min())
+        size = int((max(a.max(), b.max()) - lo) / voxel_size) + 1
+        ha = np.bincount(((a - lo) / voxel_size).astype(np.int64), minlength=size)
+        hb = np.bincount(((b - lo) / voxel_size).astype(np.int64), minlength=size)
+        corr = np.correlate(hb.astype(np.float64), ha.astype(np.float64), mode="full")
+        rows.append(d)
+        shifts.append((int(np.argmax(corr)) - (size - 1)) * voxel_size)
+    if not rows:
+        return np.zeros(3)
+    return np.linalg.lstsq(np.array(rows), np.array(shifts), rcond=None)[0]

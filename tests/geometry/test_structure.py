@@ -1,0 +1,62 @@
+"""A cloud's large planes, the fit of the rest and the turned alternatives
+(geometry/structure.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.structure import clutter_fit, structure, turned_alternatives
+from tests.pipeline._rooms import ROOM, scans, turn_z
+
+VOXEL = 0.05
+#: the source's pose in the target's frame (scan 1 of a room seen twice)
+TRUTH = turn_z(30.0, (0.2, -0.1, 0.0))
+
+
+@pytest.fixture(scope="module")
+def room():
+    src = scans(ROOM, [np.eye(4), TRUTH], n=6000)[1]
+    tgt = scans(ROOM, [np.eye(4)], n=6000, seed=5)[0]
+    return structure(src, VOXEL), structure(tgt, VOXEL)
+
+
+def test_the_walls_floor_and_ceiling_are_structure_and_the_boxes_are_not(room):
+    _, tgt = room
+    p, mask = tgt.points, tgt.mask
+    on_shell = (np.abs(np.abs(p[:, :2]) - [1.5, 1.2]).min(axis=1) < 0.01) | (
+        np.abs(p[:, 2] - 1.0) > 0.99
+    )
+    assert mask[on_shell].mean() > 0.75  # not where two planes meet: normals across the edge
+    lifted = ~on_shell & (p[:, 2] > 0.05)  # the boxes' sides and tops
+    assert mask[lifted].mean() < 0.2
+    assert abs(tgt.directions[tgt.up][2]) > 0.99
+
+
+def test_a_half_turn_fits_the_planes_but_not_the_boxes(room):
+    src, tgt = room
+    right = clutter_fit(src, tgt, TRUTH, 2 * VOXEL)
+    turned = clutter_fit(src, tgt, turn_z(180.0) @ TRUTH, 2 * VOXEL)
+    assert right.clutter > 0.95 and right.structure > 0.95
+    assert turned.structure > 0.95  # the room's shell maps onto itself
+    assert turned.clutter < 0.6
+
+
+def test_one_turned_alternative_of_a_half_turn_is_the_truth(room):
+    src, tgt = room
+    alternatives = turned_alternatives(src, tgt, turn_z(180.0) @ TRUTH, VOXEL)
+    assert len(alternatives) == 3
+    for A in alternatives:
+        assert np.allclose(A[:3, :3] @ A[:3, :3].T, np.eye(3), atol=1e-9)
+    closest = min(alternatives, key=lambda A: np.abs(A - TRUTH).max())
+    assert np.abs(closest - TRUTH).max() < 2 * VOXEL
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(ShapeError):
+        structure(np.zeros((2, 3)), VOXEL)
+    with pytest.raises(ShapeError):
+        structure(np.zeros((10, 2)), VOXEL)
+    with pytest.raises(ShapeError):
+        structure(np.random.default_rng(0).random((10, 3)), 0.0)
