@@ -123,8 +123,10 @@ def _options() -> dict[str, Callable]:
             help="With byoc features: when the confidence is below 0.95, extract the source's "
             "features again turned by 60 to 300 deg (every 60) about its up axis and keep the "
             "most confident result; a result that fits as well turned elsewhere exits 3 as "
-            "ambiguous. For scans turned far apart about the vertical (terrestrial scanner "
-            "stations, turntables): docs/registering.md, Turned scans. "
+            "ambiguous. With any features, a result that passes is turned 90, 180 and 270 deg "
+            "about the up axis, and its confidence is capped at 0.1 when a turn fits what is not "
+            "floor, ceiling or wall better. For scans turned far apart about the vertical "
+            "(terrestrial scanner stations, turntables): docs/registering.md, Turned scans. "
             f"{_default('matching.turns')}",
         ),
         "seed": click.option(

@@ -21,16 +21,21 @@ class Fallback:
     Args:
         voxel_size: ``"auto"``, or the FPFH voxel in metres (twice the learned one: the
             features' reference voxels are 5 cm and 2.5 cm).
+        turns: the learned registrar's ``matching.turns``: FPFH's recipe carries it, so that
+            its results are checked against their turns about the up axis as the learned
+            ones are (:meth:`~byoc_cli.pipeline.solve.Solver.check_structure`; FPFH tries
+            no turned sources).
     """
 
-    def __init__(self, voxel_size: float | str) -> None:
+    def __init__(self, voxel_size: float | str, turns: bool = False) -> None:
         self.voxel_size = voxel_size
+        self.turns = turns
         self._registrars: dict[tuple, Any] = {}
         self._lock = threading.Lock()
 
     def registrar(self, changes: tuple[tuple[str, Any], ...] = ()):
         """The FPFH :class:`~byoc_cli.pipeline.registrar.Registrar` (one thread) of the
-        ``fpfh`` preset, with ``changes`` (``(path, value)`` pairs of
+        ``fpfh`` preset (with :attr:`turns`), with ``changes`` (``(path, value)`` pairs of
         :meth:`~byoc_cli.pipeline.recipe.RegistrationRecipe.changed`: a smooth pair's,
         :data:`byoc_cli.pipeline.feature_choice.SMOOTH_FPFH`)."""
         from byoc_cli.pipeline.recipe import preset
@@ -38,7 +43,8 @@ class Fallback:
 
         with self._lock:
             if changes not in self._registrars:
-                recipe = preset("fpfh").changed(**dict(changes))
+                recipe = preset("fpfh").changed(matching__turns=self.turns or None)
+                recipe = recipe.changed(**dict(changes))
                 self._registrars[changes] = Registrar(
                     "fpfh", voxel_size=self.voxel_size, threads=1, recipe=recipe
                 )

@@ -103,7 +103,10 @@ class MatchingRecipe:
         mutual: keep only mutual nearest neighbours before the top-k selection.
         turns: learned features only: when the first result is below 0.95, extract the
             source's features again turned by 60 to 300 deg (every 60) about its up axis and
-            keep the most confident (:mod:`byoc_cli.pipeline.turns`).
+            keep the most confident (:mod:`byoc_cli.pipeline.turns`). With any features, a
+            result that reaches the gate is checked against its turns about the up axis
+            (its confidence capped at 0.1 when one fits what is not floor, ceiling or wall
+            better: :mod:`byoc_cli.pipeline.structure_check`).
     """
 
     max_points: int

@@ -76,6 +76,9 @@ class RegisterConfig:
         seed: seeds every random choice (subset, sampling).
         confidence_model: the features whose calibration turns the cues into the confidence
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
+        structure_check: a result that reaches ``min_confidence`` is checked against its
+            turns about the up axis (:meth:`~byoc_cli.pipeline.solve.Solver.check_structure`);
+            on with the recipe's ``matching.turns`` (scans declared turned about the vertical).
     """
 
     num_correspondences: int = PAPER.matching.correspondences
@@ -94,6 +97,7 @@ class RegisterConfig:
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
+    structure_check: bool = PAPER.matching.turns
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -129,6 +133,7 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         min_confidence=recipe.gate.min_confidence,
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
+        structure_check=recipe.matching.turns,
     )
 
 

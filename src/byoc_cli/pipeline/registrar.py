@@ -91,7 +91,8 @@ class Registrar(Featurizer):
         self._lock = threading.Lock()
         self._refine = RefineClouds(self.CACHE)
         self._coarse = RefineClouds(self.CACHE)  # the local path's coarse pass
-        self._fallback = Fallback("auto" if self.auto_voxel else 2.0 * self.voxel_size)
+        fallback_voxel = "auto" if self.auto_voxel else 2.0 * self.voxel_size
+        self._fallback = Fallback(fallback_voxel, turns=self.turns)
 
     def executor(self):
         """The registrar's worker pool (:func:`byoc_cli.threads.worker_pool`, ``threads``

@@ -6,7 +6,9 @@ the feature and refinement voxels and the settings of a
 correspondences (:func:`fit_robust`: randomized Procrustes or RANSAC), refines the fit
 (``"multiscale"``, or measures it as it is), restarts the refinement when the result can reach
 the restart floor (:func:`run_restarts`) and judges the end
-(:class:`byoc_cli.pipeline.verdict.Judge`).
+(:class:`byoc_cli.pipeline.verdict.Judge`); with ``structure_check`` (the recipe's
+``matching.turns``), a result that reaches the gate is checked against its turns about the up
+axis (:meth:`Solver.check_structure`).
 """
 
 from __future__ import annotations
@@ -86,7 +88,7 @@ class Solver:
             start = timer("restarts", start)
             verdict = judge(refinement, restart_cues)
             start = timer("verify", start)
-        if verdict.confidence >= config.min_confidence:
+        if config.structure_check and verdict.confidence >= config.min_confidence:
             verdict = self.check_structure(refinement.T_tgt_src, verdict)
             timer("structure", start)
         return refinement, verdict

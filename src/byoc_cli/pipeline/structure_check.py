@@ -8,7 +8,9 @@ about the target's up axis, moves each turn so the source's large planes overlay
 target's, refines the turns together (:func:`~byoc_cli.pipeline.restarts.refine_starts`) and
 returns how much better the best of them fits the source's clutter than the result
 (:func:`byoc_cli.geometry.structure.clutter_fit`). :class:`~byoc_cli.pipeline.solve.Solver`
-caps the confidence of a result whose rival fits its clutter better by :data:`RIVAL_GAIN`.
+caps the confidence of a result whose rival fits its clutter better by :data:`RIVAL_GAIN`,
+when the recipe's ``matching.turns`` is on (``--turns``: scans declared turned about the
+vertical; the check costs a refinement of three starts per result that passes).
 """
 
 from __future__ import annotations
