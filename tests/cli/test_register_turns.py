@@ -52,3 +52,27 @@ def test_without_turns_the_learned_features_do_not_find_it(turned_demo, tmp_path
     result, report, _ = _run(turned_demo, tmp_path, "--no-turns")
     assert report["turns"] is None
     assert report["features"] == "fpfh" or result.exit_code == 3
+
+
+def test_turns_in_utm_coordinates_with_a_stray_point(turned_demo, tmp_path):
+    """Both scans georeferenced (UTM-like offsets) and one stray return 1000 km out in the
+    source: the turns run about the source's own up axis and centre, strays left out, and T
+    holds in the input's coordinates (checked at the source's centroid)."""
+    src_path, tgt_path, T_gt = turned_demo
+    offset = np.array([4.5e5, 5.2e6, 100.0])
+    src = np.asarray(load_cloud(src_path), dtype=np.float64)
+    tgt = np.asarray(load_cloud(tgt_path), dtype=np.float64)
+    write_ply(tmp_path / "src.ply", np.vstack([src + offset, offset + 1e6]))
+    write_ply(tmp_path / "tgt.ply", tgt + offset)
+    S = np.eye(4)
+    S[:3, 3] = offset
+    T_utm = S @ T_gt @ np.linalg.inv(S)
+    paths = (tmp_path / "src.ply", tmp_path / "tgt.ply", T_utm)
+    result, report, T = _run(paths, tmp_path, "--turns")
+    assert result.exit_code == 0, result.stderr
+    assert not report["turns"]["ambiguous"]
+    centroid = src.mean(axis=0) + offset
+    moved = T[:3, :3] @ centroid + T[:3, 3]
+    expected = T_utm[:3, :3] @ centroid + T_utm[:3, 3]
+    assert rotation_angle_deg((np.linalg.inv(T) @ T_utm)[:3, :3]) < 5
+    assert np.linalg.norm(moved - expected) < 0.1

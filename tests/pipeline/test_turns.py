@@ -79,6 +79,29 @@ def test_two_confident_tries_that_end_together_are_not_ambiguous():
     assert not got.turns["ambiguous"] and got.passed
 
 
+def _about(T: np.ndarray, degrees: float, at: np.ndarray) -> Registration:
+    """``T`` turned further by ``degrees`` about z through ``at``, as a registration."""
+    got = _registration(0.85)
+    return got._replace(T_tgt_src=turn_about(np.array([0.0, 0.0, 1.0]), degrees, at) @ T)
+
+
+@pytest.mark.parametrize(("apart_deg", "ambiguous"), [(0.02, False), (30.0, True)])
+def test_georeferenced_tries_are_compared_where_the_scan_is(apart_deg, ambiguous):
+    """Tries that put a scan 500 km out at the same place are not ambiguous, though their
+    translations differ by metres for 0.02 deg (and by kilometres at the origin)."""
+    offset = np.array([4.5e5, 5.2e6, 100.0])
+    room = np.vstack([ROOM + offset, offset + 1e6])  # and a stray point 1000 km out
+    T = np.eye(4)
+    T[:3, 3] = [0.5, 0.0, 0.0]
+    best = _registration(0.9)._replace(T_tgt_src=T)
+    rival = _about(T, apart_deg, np.median(room, axis=0))
+    turned, match, _ = _tries({120: rival, 180: best})
+    got = best_turn(_registration(0.3), room, turned, match, GATE)
+    assert np.linalg.norm(rival.T_tgt_src[:3, 3] - T[:3, 3]) > 1.0  # far apart at the origin
+    assert got.turns["kept_deg"] == 180.0 and got.turns["ambiguous"] == ambiguous
+    assert got.passed != ambiguous
+
+
 def test_a_rival_below_the_gate_does_not_make_a_result_ambiguous():
     turned, match, _ = _tries({120: _registration(0.4, 3.0), 180: _registration(0.46, 2.0)})
     got = best_turn(_registration(0.0), ROOM, turned, match, GATE)
@@ -105,7 +128,7 @@ def test_with_turns_runs_them_below_its_bound_and_says_when_the_fallback_is_spar
     first, turned_to, tries, done
 ):
     calls = []
-    src = SimpleNamespace(cloud=ROOM)
+    src = SimpleNamespace(cloud=ROOM, scale=1.0)
     best = _registration(turned_to, 2.0)
 
     def turned(T):
@@ -120,7 +143,9 @@ def test_with_turns_runs_them_below_its_bound_and_says_when_the_fallback_is_spar
 def test_without_a_turner_nothing_is_tried():
     calls = []
     first = _registration(0.1)
-    got, finished = with_turns(_made(calls), first, (SimpleNamespace(cloud=ROOM), None), None, {})
+    got, finished = with_turns(
+        _made(calls), first, (SimpleNamespace(cloud=ROOM, scale=1.0), None), None, {}
+    )
     assert got is first and not finished and calls == []
 
 

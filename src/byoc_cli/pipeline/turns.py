@@ -54,7 +54,7 @@ def with_turns(
     def again(features: Features) -> Registration:
         return made.match_alone(features, tgt, **settings)
 
-    kept = best_turn(first, src.cloud, turned, again, made.fallback_below)
+    kept = best_turn(first, src.cloud, turned, again, made.fallback_below, src.scale)
     return kept, kept.turns["ambiguous"] or kept.confidence >= TURN_SURE
 
 
@@ -83,11 +83,14 @@ def best_turn(
     turned: Callable[[np.ndarray], Features],
     match: Callable[[Features], Registration],
     gate: float,
+    scale: float = 1.0,
 ) -> Registration:
     """``first``, or the most confident of the source turned by :data:`TURNS_DEG` about the
     up axis of ``points (N, 3)`` (the source, metres) where it beats ``first`` by
     :data:`TURN_GAIN`; ``turned``: :func:`source_turner`'s; ``match``: registers a source's
-    features against the target's; ``gate``: the run's ``min_confidence``.
+    features against the target's; ``gate``: the run's ``min_confidence``; ``scale``: the
+    input's factor to metres (``points`` are the input times ``scale``; the results'
+    ``T_tgt_src`` are in the input's units).
 
     The result's ``turns`` says what was tried (``up_axis``, ``tries``: each turn's degrees,
     confidence and ``T_tgt_src``, ``kept_deg``) and whether it is ``ambiguous``: another try
@@ -104,12 +107,16 @@ def best_turn(
     deg, best = max(tries[1:], key=lambda t: t[1].confidence)
     if best.confidence < first.confidence + TURN_GAIN:
         deg, best = tries[0]
+    # where each try puts the source's median point, in the input's coordinates and units: the
+    # translations of georeferenced scans (hundreds of kilometres out) differ by kilometres
+    # for 0.1 deg, and a stray point far away would drag a mean
+    at = np.median(points, axis=0) / scale
     rivals = [
         (d, r)
         for d, r in tries
         if r is not best
         and r.confidence >= max(gate, best.confidence - AMBIGUOUS_WITHIN)
-        and not _same_place(r.T_tgt_src, best.T_tgt_src, best.voxel_size)
+        and not _same_place(r.T_tgt_src, best.T_tgt_src, best.voxel_size / scale, at)
     ]
     report = {
         "up_axis": [round(float(a), 6) for a in axis],
@@ -126,9 +133,11 @@ def best_turn(
     return best._replace(turns=report, timings=timings, passed=passed)
 
 
-def _same_place(T_a: np.ndarray, T_b: np.ndarray, voxel: float) -> bool:
-    """Whether ``T_a`` and ``T_b (4, 4)`` lie within SAME_DEG and SAME_VOXELS voxels."""
-    from byoc_cli.pipeline.posegraph import transform_difference
+def _same_place(T_a: np.ndarray, T_b: np.ndarray, voxel: float, at: np.ndarray) -> bool:
+    """Whether ``T_a`` and ``T_b (4, 4)`` turn within SAME_DEG of each other and move the
+    point ``at (3,)`` (the source's centre) to within SAME_VOXELS voxels of each other."""
+    from byoc_cli.pipeline.posegraph import rotation_angle_deg
 
-    degrees, distance = transform_difference(T_a, T_b)
-    return degrees < SAME_DEG and distance < SAME_VOXELS * voxel
+    degrees = rotation_angle_deg(T_a[:3, :3] @ T_b[:3, :3].T)
+    apart = (T_a[:3, :3] - T_b[:3, :3]) @ at + (T_a[:3, 3] - T_b[:3, 3])
+    return degrees < SAME_DEG and float(np.linalg.norm(apart)) < SAME_VOXELS * voxel
