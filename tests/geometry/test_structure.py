@@ -5,9 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.structure import clutter_fit, structure, turned_alternatives
+from byoc_cli.geometry.structure import (
+    _correlation,
+    clutter_fit,
+    structure,
+    turned_alternatives,
+)
 from tests.pipeline._rooms import ROOM, scans, turn_z
 
 VOXEL = 0.05
@@ -60,3 +67,19 @@ def test_bad_input_is_refused():
         structure(np.zeros((10, 2)), VOXEL)
     with pytest.raises(ShapeError):
         structure(np.random.default_rng(0).random((10, 3)), 0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    counts=st.lists(st.integers(0, 60), min_size=1, max_size=300),
+    other=st.lists(st.integers(0, 60), min_size=1, max_size=300),
+)
+def test_the_plane_offsets_correlate_as_numpy_does(counts, other):
+    """The FFT correlation of two offset histograms is numpy's direct one, to the count (the
+    direct one is quadratic in the histograms' length, which a stray point far out makes
+    long)."""
+    size = max(len(counts), len(other))
+    h = np.pad(np.array(counts), (0, size - len(counts)))
+    g = np.pad(np.array(other), (0, size - len(other)))
+    expected = np.correlate(h.astype(np.float64), g.astype(np.float64), mode="full")
+    assert np.array_equal(_correlation(h, g), expected)

@@ -185,9 +185,19 @@ def _plane_shift(p, n, q, m, directions, voxel_size) -> np.ndarray:
         size = int((max(a.max(), b.max()) - lo) / voxel_size) + 1
         ha = np.bincount(((a - lo) / voxel_size).astype(np.int64), minlength=size)
         hb = np.bincount(((b - lo) / voxel_size).astype(np.int64), minlength=size)
-        corr = np.correlate(hb.astype(np.float64), ha.astype(np.float64), mode="full")
         rows.append(d)
-        shifts.append((int(np.argmax(corr)) - (size - 1)) * voxel_size)
+        shifts.append((int(np.argmax(_correlation(hb, ha))) - (size - 1)) * voxel_size)
     if not rows:
         return np.zeros(3)
     return np.linalg.lstsq(np.array(rows), np.array(shifts), rcond=None)[0]
+
+
+def _correlation(h: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``np.correlate(h, g, "full")`` of two count histograms of one length ``L`` (``(2L - 1,)``,
+    lag ``-(L - 1)`` first) by FFT: O(L log L) where a stray point far out makes ``L`` large,
+    rounded to the integers the counts give."""
+    L = len(h)
+    n = 1 << (2 * L - 1).bit_length()
+    circular = np.fft.irfft(np.fft.rfft(h, n) * np.conj(np.fft.rfft(g, n)), n)
+    lags = np.concatenate([circular[n - (L - 1) :], circular[:L]])  # -(L-1) .. L-1
+    return np.rint(lags)
