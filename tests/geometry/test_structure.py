@@ -15,17 +15,15 @@ from byoc_cli.geometry.structure import (
     structure,
     turned_alternatives,
 )
-from tests.pipeline._rooms import ROOM, scans, turn_z
+from tests.pipeline._rooms import SEEN_TWICE, seen_twice, turn_z
 
 VOXEL = 0.05
-#: the source's pose in the target's frame (scan 1 of a room seen twice)
-TRUTH = turn_z(30.0, (0.2, -0.1, 0.0))
+TRUTH = SEEN_TWICE
 
 
 @pytest.fixture(scope="module")
 def room():
-    src = scans(ROOM, [np.eye(4), TRUTH], n=6000)[1]
-    tgt = scans(ROOM, [np.eye(4)], n=6000, seed=5)[0]
+    src, tgt = seen_twice()
     return structure(src, VOXEL), structure(tgt, VOXEL)
 
 

@@ -69,3 +69,15 @@ def guesses(degrees: float, metres: float, seed: int = 0, world=None) -> list[np
     return [world @ STATIONS[0]] + [
         world @ perturbed(P, degrees, metres, rng) for P in STATIONS[1:]
     ]
+
+
+#: the source's pose in the target's frame of :func:`seen_twice` (a room scanned twice)
+SEEN_TWICE = turn_z(30.0, (0.2, -0.1, 0.0))
+
+
+def seen_twice(n: int = 6000) -> tuple[np.ndarray, np.ndarray]:
+    """``(source, target)`` scans of :data:`ROOM`, the source at :data:`SEEN_TWICE`, each
+    ``(n, 3)`` with its own noise."""
+    src = scans(ROOM, [np.eye(4), SEEN_TWICE], n=n)[1]
+    tgt = scans(ROOM, [np.eye(4)], n=n, seed=5)[0]
+    return src, tgt

@@ -16,16 +16,15 @@ from byoc_cli.pipeline.register import RegisterConfig, _Timer, register_config
 from byoc_cli.pipeline.solve import Solver
 from byoc_cli.pipeline.structure_check import RIVAL_GAIN, VETOED_CONFIDENCE, structure_rival
 from byoc_cli.pipeline.verdict import Verdict
-from tests.pipeline._rooms import ROOM, scans, turn_z
+from tests.pipeline._rooms import SEEN_TWICE, seen_twice, turn_z
 
 VOXEL = 0.05
-TRUTH = turn_z(30.0, (0.2, -0.1, 0.0))
+TRUTH = SEEN_TWICE
 
 
 @pytest.fixture(scope="module")
 def clouds():
-    src = scans(ROOM, [np.eye(4), TRUTH], n=6000)[1]
-    tgt = scans(ROOM, [np.eye(4)], n=6000, seed=5)[0]
+    src, tgt = seen_twice()
     return torch.from_numpy(src), torch.from_numpy(tgt)
 
 
