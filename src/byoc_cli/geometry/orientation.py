@@ -55,14 +55,18 @@ def up_axis(
         raise ShapeError(f"points must be (N, 3) with N >= 3, got {tuple(pts.shape)}")
     generator = generator or torch.Generator().manual_seed(0)
     asked = pts[torch.randperm(len(pts), generator=generator)[: min(samples, len(pts))].numpy()]
-    normals = _normals(pts, asked)
-    main = _main_directions(normals)
-    spread = ((asked - asked.mean(axis=0)) @ np.stack(main, axis=1)).std(axis=0)
-    axis = main[int(np.argmin(spread))]
+    main = np.stack(main_directions(point_normals(pts, asked)))
+    axis = main[thinnest(asked, main)]
     return axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
 
 
-def _normals(points: np.ndarray, asked: np.ndarray) -> np.ndarray:
+def thinnest(points: np.ndarray, directions: np.ndarray) -> int:
+    """The index of the one of ``directions (D, 3)`` along which ``points (N, 3)`` spread
+    least (standard deviation of their offsets)."""
+    return int(np.argmin(((points - points.mean(axis=0)) @ directions.T).std(axis=0)))
+
+
+def point_normals(points: np.ndarray, asked: np.ndarray) -> np.ndarray:
     """``(S, 3)`` the least spread direction of the :data:`UP_NEIGHBOURS` nearest ``points``
     of each of ``asked (S, 3)`` (k-d tree)."""
     from pykdtree.kdtree import KDTree
@@ -75,7 +79,7 @@ def _normals(points: np.ndarray, asked: np.ndarray) -> np.ndarray:
     return vectors[:, :, 0]
 
 
-def _main_directions(normals: np.ndarray) -> list[np.ndarray]:
+def main_directions(normals: np.ndarray) -> list[np.ndarray]:
     """The main directions of ``normals (S, 3)`` (:func:`up_axis`), strongest first; at
     least one."""
     cone = math.cos(math.radians(UP_CONE_DEG))

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.orientation import _main_directions, _normals
+from byoc_cli.geometry.orientation import main_directions, point_normals, thinnest
 from byoc_cli.geometry.voxel import voxelize
 
 #: a point lies along a main direction when its normal is within this of it (either sign)
@@ -51,7 +51,7 @@ def structure(
 ) -> Structure:
     """The large planes of ``points (N, 3)`` at ``voxel_size``: of the voxel representatives,
     those whose normal lies within :data:`STRUCTURE_CONE_DEG` of a main surface direction
-    (:func:`byoc_cli.geometry.orientation._main_directions` on a seeded sample of normals) and
+    (:func:`byoc_cli.geometry.orientation.main_directions` on a seeded sample of normals) and
     whose offset along it falls in a slab of :data:`STRUCTURE_SLAB` voxels that holds at
     least :data:`STRUCTURE_MIN_SHARE` of all representatives (with its two neighbouring
     slabs: a plane that straddles a slab edge, or a noisy one).
@@ -69,10 +69,10 @@ def structure(
         return Structure(
             kept, np.zeros(len(kept), dtype=bool), np.eye(3)[2:], np.eye(3)[[2] * len(kept)], 0
         )
-    normals = _normals(kept, kept)
+    normals = point_normals(kept, kept)
     generator = generator or torch.Generator().manual_seed(0)
     sample = torch.randperm(len(kept), generator=generator)[:STRUCTURE_SAMPLES].numpy()
-    directions = np.stack(_main_directions(normals[sample]))
+    directions = np.stack(main_directions(normals[sample]))
     cone = math.cos(math.radians(STRUCTURE_CONE_DEG))
     slab = STRUCTURE_SLAB * voxel_size
     mask = np.zeros(len(kept), dtype=bool)
@@ -87,8 +87,7 @@ def structure(
         near[1:] |= big[:-1]
         near[:-1] |= big[1:]
         mask |= along & near[bins - lo]
-    spread = ((kept - kept.mean(axis=0)) @ directions.T).std(axis=0)
-    return Structure(kept, mask, directions, normals, int(np.argmin(spread)))
+    return Structure(kept, mask, directions, normals, thinnest(kept, directions))
 
 
 class ClutterFit(NamedTuple):

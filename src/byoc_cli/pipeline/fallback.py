@@ -43,8 +43,8 @@ class Fallback:
 
         with self._lock:
             if changes not in self._registrars:
-                recipe = preset("fpfh").changed(matching__turns=self.turns or None)
-                recipe = recipe.changed(**dict(changes))
+                turns = self.turns or None  # None: the preset's
+                recipe = preset("fpfh").changed(matching__turns=turns, **dict(changes))
                 self._registrars[changes] = Registrar(
                     "fpfh", voxel_size=self.voxel_size, threads=1, recipe=recipe
                 )
