@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
 from byoc_cli.fitting.plane_to_plane import disc_covariances, plane_to_plane_step
-from byoc_cli.geometry.transforms import apply_transform
+from byoc_cli.geometry.transforms import apply_transform, axis_angle_to_matrix, make_transform
 from tests.fitting._surfaces import box_surface, motion
 
 
@@ -89,3 +89,31 @@ def test_shapes_must_agree():
         plane_to_plane_step(
             torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(5, 3), torch.zeros(4, 3)
         )
+
+
+def test_the_step_solves_the_normal_equations_written_out_point_by_point(generator):
+    """The step's ``H`` and ``g`` (three broadcast products and one matrix product) against
+    ``sum_i J_i^T M_i J_i`` and ``sum_i J_i^T M_i (q_i - p_i)``, a point at a time."""
+    q, n = box_surface(50, generator)
+    T_true = motion(5.0, [0.04, -0.01, 0.02])
+    p = apply_transform(torch.linalg.inv(T_true), q)
+    n_p = n @ T_true[:3, :3]
+    c = p.mean(0)
+    x = p - c
+    radius = torch.sqrt((x**2).sum(1).mean())
+    H, g = torch.zeros(6, 6, dtype=torch.float64), torch.zeros(6, dtype=torch.float64)
+    for i in range(len(p)):
+        M = torch.linalg.inv(
+            disc_covariances(n_p[i : i + 1])[0] + disc_covariances(n[i : i + 1])[0]
+        )
+        a = x[i] / radius
+        A = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+        J = torch.cat([A.double(), -torch.eye(3, dtype=torch.float64)], dim=1)
+        H += J.T @ M @ J
+        g += J.T @ M @ (q[i] - p[i])
+    xi = -torch.linalg.solve(H, g)
+    R = axis_angle_to_matrix(xi[:3] / radius)
+    expected = make_transform(R, c - R @ c + xi[3:])
+    assert torch.allclose(plane_to_plane_step(p, n_p, q, n).T, expected, atol=1e-12)
+    as_arrays = plane_to_plane_step(*(t.numpy() for t in (p, n_p, q, n)))
+    assert torch.equal(as_arrays.T, plane_to_plane_step(p, n_p, q, n).T)

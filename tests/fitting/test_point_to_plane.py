@@ -138,3 +138,16 @@ def test_batched_steps_check_their_shapes():
         point_to_plane_steps(p, p, p, torch.ones(2, 4))
     with pytest.raises(ShapeError):
         point_to_plane_steps(p[0], p[0], p[0], torch.ones(5))
+
+
+def test_arrays_give_the_step_tensors_give(generator):
+    q, n = box_surface(200, generator)
+    p = apply_transform(torch.linalg.inv(motion(3.0, [0.02, 0.01, -0.03])), q)
+    w = torch.rand(200, generator=generator, dtype=torch.float64)
+    for weights in (None, w):
+        tensors = point_to_plane_step(p, q, n, weights, degeneracy=0.05)
+        arrays = point_to_plane_step(
+            p.numpy(), q.numpy(), n.numpy(), None if weights is None else weights.numpy(), 0.05
+        )
+        assert torch.equal(arrays.T, tensors.T) and arrays.rank == tensors.rank
+        assert torch.equal(arrays.eigenvalues, tensors.eigenvalues)

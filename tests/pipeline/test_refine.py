@@ -304,3 +304,30 @@ def test_measure_fit_of_clouds_that_do_not_meet_is_zero():
     a = torch.rand(500, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     out = measure_fit(a, a + 100.0, torch.eye(4, dtype=torch.float64), voxel_size=0.025)
     assert out.fitness == 0.0 and out.rank == 0
+
+
+def test_the_steps_nearest_points_are_those_of_the_cell_index(generator):
+    """The refinement's numpy nearest-of-candidates against the cell index's (torch): the
+    same points and the same float32 distances."""
+    from byoc_cli.geometry.neighbors import (
+        CellIndex,
+        candidate_coordinates,
+        nearest_candidates,
+        nearest_of,
+    )
+
+    target = _boxes(4000, ROOM, generator)
+    index = CellIndex(target, 0.05, 1)
+    queries = _boxes(500, ROOM, generator) + 0.01 * torch.randn(
+        500, 3, generator=generator, dtype=torch.float64
+    )
+    candidates = nearest_candidates(index, queries, 8, 1)
+    coordinates = candidate_coordinates(index, candidates)
+    moved = queries + 0.004  # candidates kept while the points move
+    expected = nearest_of(index, moved, candidates, coordinates)
+    got = refine_module._nearest(
+        moved.numpy(), index.origin.numpy(), candidates.numpy(), coordinates.numpy()
+    )
+    assert (got.index == expected.index.numpy()).all()
+    assert (got.distance2 == expected.distance2.numpy()).all()
+    assert (got.index >= 0).mean() > 0.5  # most points have a neighbour to compare

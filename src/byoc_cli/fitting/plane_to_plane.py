@@ -17,11 +17,11 @@ radius (rotation and translation columns in the same units): a motion ``xi = (w,
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.fitting.point_to_plane import PlaneStep
-from byoc_cli.geometry.transforms import axis_angle_to_matrix, make_transform
+from byoc_cli.fitting.point_to_plane import PlaneStep, _rotation
 
 #: the variance of a point's disc along its normal, as a share of the variance across it
 FLATNESS = 1e-3
@@ -45,7 +45,7 @@ def plane_to_plane_step(
 ) -> PlaneStep:
     """The increment that moves the discs ``(p, n_p)`` onto the discs ``(q, n_q)``.
 
-    Args:
+    Args (tensors or numpy arrays):
         p: ``(K, 3)`` source points (already under the current transform).
         n_p: ``(K, 3)`` their unit normals (rotated with them; the sign does not matter).
         q: ``(K, 3)`` their target points; ``n_q``: ``(K, 3)`` unit normals at ``q``.
@@ -63,7 +63,7 @@ def plane_to_plane_step(
     shapes = (p.shape, n_p.shape, q.shape, n_q.shape)
     if p.ndim != 2 or p.shape[-1] != 3 or any(s != p.shape for s in shapes):
         raise ShapeError(f"p, n_p, q, n_q must all be (K, 3), got {', '.join(map(str, shapes))}")
-    p, n_p, q, n_q = p.double(), n_p.double(), q.double(), n_q.double()
+    p, n_p, q, n_q = (torch.as_tensor(x).double() for x in (p, n_p, q, n_q))
     w = torch.ones(len(p), dtype=torch.float64) if weights is None else weights.double()
     if len(p) < 3 or float(w.sum()) <= 0:
         return PlaneStep(torch.eye(4, dtype=torch.float64), 0, torch.zeros(6, dtype=torch.float64))
@@ -75,15 +75,21 @@ def plane_to_plane_step(
     J = torch.zeros(len(p), 3, 6, dtype=torch.float64)
     J[:, :, :3] = _cross_matrices(x / radius)  # d residual / d (w / L)
     J[:, :, 3:] = -torch.eye(3, dtype=torch.float64)  # d residual / d v
-    MJ = M @ J
-    H = (J.transpose(1, 2) @ MJ).sum(0)
-    g = (MJ.transpose(1, 2) @ (q - p)[:, :, None]).sum(0)[:, 0]
-    lam = torch.linalg.eigvalsh(H)
-    ridge = 1e-12 * lam[-1].clamp_min(1e-300)
-    xi = -torch.linalg.solve(H + ridge * torch.eye(6, dtype=torch.float64), g)
-    R = axis_angle_to_matrix(xi[:3] / radius)
-    T = make_transform(R, c - R @ c + xi[3:])
-    return PlaneStep(T.double(), 6, lam / lam[-1].clamp_min(1e-300))
+    # M J row by row as three broadcast products, then one (6, 3K) x (3K, 6) product: a
+    # batched matmul of K tiny matrices costs ten times as much on the CPU
+    MJ = M[:, :, :1] * J[:, :1] + M[:, :, 1:2] * J[:, 1:2] + M[:, :, 2:] * J[:, 2:]
+    rows, weighted = J.reshape(-1, 6), MJ.reshape(-1, 6)
+    H = rows.T @ weighted
+    g = weighted.T @ (q - p).reshape(-1)
+    # the 6 x 6 solve in numpy: a dozen torch calls on tiny matrices cost more than it
+    H, g, c, radius = H.numpy(), g.numpy(), c.numpy(), float(radius)
+    lam = np.linalg.eigvalsh(H)
+    ridge = 1e-12 * max(lam[-1], 1e-300)
+    xi = -np.linalg.solve(H + ridge * np.eye(6), g)
+    R = _rotation(xi[:3] / radius)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, c - R @ c + xi[3:]
+    return PlaneStep(torch.from_numpy(T), 6, torch.from_numpy(lam / max(lam[-1], 1e-300)))
 
 
 def _cross_matrices(x: torch.Tensor) -> torch.Tensor:

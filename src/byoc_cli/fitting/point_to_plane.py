@@ -20,8 +20,10 @@ Linearisation about the current points, with ``c`` their mean and ``L`` their RM
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
@@ -57,7 +59,7 @@ def point_to_plane_step(
 ) -> PlaneStep:
     """The increment that moves points ``p`` onto the planes ``(q, n)``.
 
-    Args:
+    Args (tensors or numpy arrays):
         p: ``(K, 3)`` source points (already under the current transform).
         q: ``(K, 3)`` their target points.
         n: ``(K, 3)`` unit normals at ``q``.
@@ -75,39 +77,61 @@ def point_to_plane_step(
     """
     if p.ndim != 2 or p.shape[-1] != 3 or q.shape != p.shape or n.shape != p.shape:
         raise ShapeError(f"p, q, n must all be (K, 3), got {p.shape}, {q.shape}, {n.shape}")
-    p, q, n = p.double(), q.double(), n.double()
-    w = torch.ones(len(p), dtype=torch.float64) if weights is None else weights.double()
-    if len(p) == 0 or float(w.sum()) <= 0:
+    p, q, n = (_array(x) for x in (p, q, n))
+    w = None if weights is None else _array(weights)
+    total = float(len(p)) if w is None else float(w.sum())
+    if len(p) == 0 or total <= 0:
         return PlaneStep(torch.eye(4, dtype=torch.float64), 0, torch.zeros(6, dtype=torch.float64))
-    c = (w[:, None] * p).sum(0) / w.sum()
+    c = (p if w is None else w[:, None] * p).sum(0) / total
     centred = p - c
-    radius = torch.sqrt((w * (centred**2).sum(1)).sum() / w.sum()).clamp_min(1e-9)
-    J = torch.cat([torch.linalg.cross(centred, n) / radius, n], dim=1)  # (K, 6)
+    spread = (centred**2).sum(1)
+    radius = max(math.sqrt((spread if w is None else w * spread).sum() / total), 1e-9)
+    J = np.concatenate([np.cross(centred, n) / radius, n], axis=1)  # (K, 6)
     r = ((p - q) * n).sum(1)
-    H = J.T @ (w[:, None] * J)
-    g = -J.T @ (w * r)
+    H = J.T @ (J if w is None else w[:, None] * J)
+    g = -(J.T @ (r if w is None else w * r))
     B = _free_basis(n, w, sliding)  # (6, d): the motions allowed to move
-    lam, U = torch.linalg.eigh(B.T @ H @ B)
-    top = lam[-1].clamp_min(1e-300)
+    lam, U = np.linalg.eigh(B.T @ H @ B)
+    top = max(lam[-1], 1e-300)
     keep = lam > max(degeneracy, 1e-12) * top
     xi = B @ (U[:, keep] @ ((U[:, keep].T @ (B.T @ g)) / lam[keep]))
-    R = axis_angle_to_matrix(xi[:3] / radius)
-    T = make_transform(R, c - R @ c + xi[3:])
-    full = torch.linalg.eigvalsh(H)
-    return PlaneStep(T.double(), int(keep.sum()), full / full[-1].clamp_min(1e-300))
+    R = _rotation(xi[:3] / radius)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, c - R @ c + xi[3:]
+    full = np.linalg.eigvalsh(H)
+    return PlaneStep(
+        torch.from_numpy(T), int(keep.sum()), torch.from_numpy(full / max(full[-1], 1e-300))
+    )
 
 
-def _free_basis(n: torch.Tensor, w: torch.Tensor, sliding: float) -> torch.Tensor:
+def _array(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    """``x`` (a tensor or an array) as a float64 numpy array: the step runs in numpy (dozens
+    of torch calls on 6 x 6 matrices cost more than their arithmetic, and every one of them
+    hands the interpreter lock to the other worker thread and waits to get it back)."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().to(device="cpu", dtype=torch.float64).numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def _rotation(axis_angle: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` rotation of ``axis_angle (3,)`` (Rodrigues' formula)."""
+    theta = float(np.linalg.norm(axis_angle))
+    x, y, z = axis_angle / max(theta, 1e-12)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * (K @ K)
+
+
+def _free_basis(n: np.ndarray, w: np.ndarray | None, sliding: float) -> np.ndarray:
     """``(6, d)`` orthonormal basis of the motions whose translation part avoids the
     directions that almost no normal in ``n (K, 3)`` faces (weights ``w (K,)``)."""
-    mu, E = torch.linalg.eigh((n.T * w) @ n)
-    held = E[:, mu < sliding * mu[-1].clamp_min(1e-300)]  # (3, h)
-    basis = torch.eye(6, dtype=torch.float64)
+    mu, E = np.linalg.eigh((n.T if w is None else n.T * w) @ n)
+    held = E[:, mu < sliding * max(mu[-1], 1e-300)]  # (3, h)
+    basis = np.eye(6)
     if held.shape[1] == 0:
         return basis
-    C = torch.zeros(6, held.shape[1], dtype=torch.float64)
+    C = np.zeros((6, held.shape[1]))
     C[3:] = held
-    U, _, _ = torch.linalg.svd(basis - C @ C.T)
+    U, _, _ = np.linalg.svd(basis - C @ C.T)
     return U[:, : 6 - held.shape[1]]
 
 

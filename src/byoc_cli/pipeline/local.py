@@ -189,28 +189,31 @@ def align_coarse(src: RefineCloud, tgt: RefineCloud, T: torch.Tensor) -> tuple[t
     from byoc_cli.fitting.plane_to_plane import plane_to_plane_step
     from byoc_cli.pipeline.posegraph import rotation_angle_deg
 
-    T = T.detach().to(device="cpu", dtype=torch.float64).clone()
+    T = T.detach().to(device="cpu", dtype=torch.float64).numpy().copy()
     fitness = 0.0
     for level, (size, dist, _) in enumerate(src.levels):
-        p, n_p = src.oriented_source(level, COARSE_POINTS)
+        p, n_p = (x.numpy() for x in src.oriented_source(level, COARSE_POINTS))
         q, n_q, _ = tgt.target(level)
         if len(p) < COARSE_MIN_PAIRS or len(q) < COARSE_MIN_PAIRS:
             break
-        tree = KDTree(q.numpy())
-        for _ in range(COARSE_ITERATIONS):
+        q, n_q = q.numpy(), n_q.numpy()
+        tree = KDTree(q)
+        for _ in range(COARSE_ITERATIONS):  # in numpy, as the refinement's steps
             moved, turned = p @ T[:3, :3].T + T[:3, 3], n_p @ T[:3, :3].T
-            d, j = tree.query(moved.numpy(), k=1, distance_upper_bound=dist)
-            ok = torch.from_numpy(np.isfinite(d) & (j < len(q)))
-            fitness = float(ok.double().mean())
-            if int(ok.sum()) < COARSE_MIN_PAIRS:
+            d, j = tree.query(moved, k=1, distance_upper_bound=dist)
+            ok = np.isfinite(d) & (j < len(q))
+            fitness = float(np.count_nonzero(ok)) / len(ok)
+            if int(np.count_nonzero(ok)) < COARSE_MIN_PAIRS:
                 break
-            j = torch.from_numpy(j.astype(np.int64))[ok]
-            step = plane_to_plane_step(moved[ok], turned[ok], q[j], n_q[j])
-            T = step.T @ T
-            angle = math.radians(rotation_angle_deg(step.T[:3, :3].numpy()))
-            if angle < COARSE_TOLERANCE and float(step.T[:3, 3].norm()) < COARSE_TOLERANCE * size:
+            j = j[ok].astype(np.int64)
+            step = plane_to_plane_step(moved[ok], turned[ok], q[j], n_q[j]).T.numpy()
+            T = step @ T
+            angle = math.radians(rotation_angle_deg(step[:3, :3]))
+            if angle < COARSE_TOLERANCE and float(np.linalg.norm(step[:3, 3])) < (
+                COARSE_TOLERANCE * size
+            ):
                 break
-    return T, fitness
+    return torch.from_numpy(T), fitness
 
 
 class LocalPair(NamedTuple):

@@ -1,12 +1,17 @@
-"""Coarse-to-fine point-to-plane ICP that holds degenerate directions, in plain PyTorch.
+"""Coarse-to-fine point-to-plane ICP that holds degenerate directions, on the CPU.
 
 The refinement behind ``--refine multiscale`` (the default of learned features): three
 levels of voxel size and correspondence distance, in multiples of the feature voxel ``v``:
 ``(v, 2v)``, ``(v/2, v)``, ``(0.4v, 0.6v)``, each up to 30 Gauss-Newton steps of
 :func:`byoc_cli.fitting.point_to_plane.point_to_plane_step` (Open3D's ICP slides along
 planes: ``point_to_plane.py`` says why and what is held). Voxel averages, normals and
-nearest points come from voxel grids (:mod:`byoc_cli.geometry.neighbors`): no k-d tree and
-no open3d, whose import alone took longer than the whole refinement does now.
+nearest points come from voxel grids in PyTorch (:mod:`byoc_cli.geometry.neighbors`): no k-d
+tree and no open3d, whose import alone took longer than the whole refinement does now. The
+steps themselves (moving the points, picking the nearest candidates, the normal equations)
+run in numpy: a step is a few dozen operations on a few thousand points, where torch's
+per-call cost dominates and each call hands the interpreter lock to the other worker thread
+of ``register-batch`` (the 28 pairs of ``benchmarks/init.py`` from their guesses: 11 % less
+wall time).
 
 Correspondences: each source point's 8 nearest target points among the 27 cells of the
 level's voxel around it are gathered once, and again only after a point has moved more
@@ -19,11 +24,11 @@ coarse for the finest level (README, "Measured levers").
 
 from __future__ import annotations
 
-import contextlib
 import math
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from byoc_cli.fitting.point_to_plane import (
@@ -121,34 +126,38 @@ def refine_multiscale(
         ValueError: a :class:`RefineCloud` was prepared for another voxel size.
     """
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
-    T = T_init.detach().to(device="cpu", dtype=torch.float64).clone()
+    T = T_init.detach().to(device="cpu", dtype=torch.float64).numpy().copy()
     rank, fitness, rmse, conditioning = 0, 0.0, float("nan"), 0.0
     for level, (size, dist, _) in enumerate(src.levels):
         p = src.source(level, max_source_points)  # levels, normals and searches: all threads
         q, n, index = tgt.target(level)
         if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
             break
-        anchor, candidates = None, None
+        # the steps in numpy: a step's few dozen small operations cost less there, and
+        # numpy keeps the interpreter lock where each torch call hands it to the other worker
+        p, planes, origin = p.numpy(), (q.numpy(), n.numpy()), index.origin.numpy()
+        anchor, candidates, coordinates = None, None, None
         for _ in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
-            if anchor is None or float((moved - anchor).abs().max()) > RESEARCH * size:
-                candidates = _search(index, moved, SEARCH_REACH[level], parallel)
-                coordinates = candidate_coordinates(index, candidates)
+            if anchor is None or float(np.abs(moved - anchor).max()) > RESEARCH * size:
+                found = _search(index, torch.from_numpy(moved), SEARCH_REACH[level], parallel)
+                candidates = found.numpy()
+                coordinates = candidate_coordinates(index, found).numpy()
                 anchor = moved
-            near = nearest_of(index, moved, candidates, coordinates)
+            near = _nearest(moved, origin, candidates, coordinates)
             fitness, level_rmse, step = _meet(
-                moved, near, (q, n), dist, voxel_size, (degeneracy, sliding)
+                moved, near, planes, dist, voxel_size, (degeneracy, sliding)
             )
             if step is None:
                 break
             rmse = level_rmse
-            T = step.T @ T
+            dT = step.T.numpy()
+            T = dT @ T
             rank, conditioning = step.rank, float(step.eigenvalues[0])
-            dR = step.T[:3, :3]
-            angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(dR)) - 1) / 2)))
-            if angle < TOLERANCE and float(step.T[:3, 3].norm()) < TOLERANCE * voxel_size:
+            angle = math.acos(max(-1.0, min(1.0, (float(np.trace(dT[:3, :3])) - 1) / 2)))
+            if angle < TOLERANCE and float(np.linalg.norm(dT[:3, 3])) < TOLERANCE * voxel_size:
                 break
-    return Refinement(T, rank, fitness, rmse, conditioning)
+    return Refinement(torch.from_numpy(T), rank, fitness, rmse, conditioning)
 
 
 def measure_fit(
@@ -179,35 +188,51 @@ def measure_fit(
         return Refinement(T, 0, 0.0)
     moved = p @ T[:3, :3].T + T[:3, 3]
     near = nearest_of(index, moved, _search(index, moved, SEARCH_REACH[level], None))
-    fitness, rmse, step = _meet(moved, near, (q, n), dist, voxel_size)
+    near = Nearest(near.index.numpy(), near.distance2.numpy())
+    fitness, rmse, step = _meet(moved.numpy(), near, (q.numpy(), n.numpy()), dist, voxel_size)
     if step is None:
         return Refinement(T, 0, fitness)
     return Refinement(T, step.rank, fitness, rmse, float(step.eigenvalues[0]))
 
 
+def _nearest(
+    moved: np.ndarray, origin: np.ndarray, candidates: np.ndarray, coordinates: np.ndarray
+) -> Nearest:
+    """:func:`~byoc_cli.geometry.neighbors.nearest_of` in numpy, the same arithmetic: for
+    each of ``moved (Q, 3)``, the nearest of its ``candidates (Q, k)`` whose
+    ``coordinates (3, Q, k)`` float32 are offsets from ``origin (3,)``; numpy arrays."""
+    q = (moved - origin).T.astype(np.float32)
+    d2 = np.square(coordinates[0] - q[0][:, None])
+    for axis in (1, 2):
+        d2 += np.square(coordinates[axis] - q[axis][:, None])
+    pick = d2.argmin(axis=1)[:, None]
+    return Nearest(
+        np.take_along_axis(candidates, pick, 1)[:, 0], np.take_along_axis(d2, pick, 1)[:, 0]
+    )
+
+
 def _meet(
-    moved: torch.Tensor,
+    moved: np.ndarray,
     near: Nearest,
-    planes: tuple[torch.Tensor, torch.Tensor],
+    planes: tuple[np.ndarray, np.ndarray],
     dist: float,
     voxel_size: float,
     held: tuple[float, float] = (DEGENERACY, SLIDING),
 ) -> tuple[float, float, PlaneStep | None]:
-    """How source points ``moved (K, 3)`` meet their ``near`` target points: the share
-    within ``dist`` (metres; the fitness), their RMS distance in feature voxels, and
-    the point-to-plane step onto the target ``planes`` (points ``(M, 3)``, normals
+    """How source points ``moved (K, 3)`` meet their ``near`` target points (numpy arrays):
+    the share within ``dist`` (metres; the fitness), their RMS distance in feature voxels,
+    and the point-to-plane step onto the target ``planes`` (points ``(M, 3)``, normals
     ``(M, 3)``) with ``held = (degeneracy, sliding)``; residual nan and no step where fewer
     than ``MIN_CORRESPONDENCES`` meet."""
     ok = near.distance2 <= dist**2
-    fitness = float(ok.double().mean())
-    if int(ok.sum()) < MIN_CORRESPONDENCES:
+    count = int(np.count_nonzero(ok))
+    fitness = count / len(ok) if len(ok) else float("nan")
+    if count < MIN_CORRESPONDENCES:
         return fitness, float("nan"), None
-    rmse = math.sqrt(float(near.distance2[ok].double().mean())) / voxel_size
+    rmse = math.sqrt(float(near.distance2[ok].astype(np.float64).mean())) / voxel_size
     j = near.index[ok]
     q, n = planes
-    # tiny tensors: extra threads only wait on each other (10x slower)
-    with _threads(1):
-        step = point_to_plane_step(moved[ok], q[j], n[j], degeneracy=held[0], sliding=held[1])
+    step = point_to_plane_step(moved[ok], q[j], n[j], degeneracy=held[0], sliding=held[1])
     return fitness, rmse, step
 
 
@@ -228,20 +253,6 @@ def _search(index: CellIndex, queries: torch.Tensor, reach: int, parallel) -> to
         ]
     )
     return torch.cat(parts)
-
-
-@contextlib.contextmanager
-def _threads(count: int) -> Iterator[None]:
-    """Run the block with ``count`` torch threads."""
-    before = torch.get_num_threads()
-    if before == count:  # (a worker of byoc_cli.threads.worker_pool runs one already)
-        yield
-        return
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------ pairs of many clouds
