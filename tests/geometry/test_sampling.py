@@ -12,12 +12,14 @@ from byoc_cli.errors import ShapeError
 from byoc_cli.geometry.sampling import (
     LINE_MIN_POINTS,
     SPACING_NEIGHBOURS,
+    STRAY_RADII,
     _first_per_voxel,
     cloud_radius,
     linear_share,
     local_frame,
     nearest_spacing,
     rough_share,
+    spread,
 )
 from byoc_cli.geometry.voxel import voxelize
 from tests._rings import camera_scan, ring_scan
@@ -139,6 +141,35 @@ def test_the_strays_do_not_depend_on_the_unit(factor, seed):
     frame = local_frame(with_far)
     assert frame.strays == 1
     assert frame.radius == pytest.approx(cloud_radius(torch.from_numpy(with_far)), rel=1e-9)
+
+
+def test_spread_is_the_median_point_and_the_median_distance_from_it():
+    pts = _surface(1001, 9) + np.array([2.0, -1.0, 0.5])
+    centre, radius = spread(pts)
+    np.testing.assert_array_equal(centre, [np.median(pts[:, k]) for k in range(3)])
+    assert radius == np.median(np.sqrt(((pts - centre) ** 2).sum(axis=1)))
+    t_centre, t_radius = spread(torch.from_numpy(pts))
+    np.testing.assert_array_equal(t_centre, centre)
+    assert t_radius == radius == cloud_radius(torch.from_numpy(pts))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 1000), st.floats(10.0, 1e5), st.integers(0, 3))
+def test_the_box_shortcut_finds_the_strays_a_point_by_point_test_finds(seed, far, count):
+    """No stray when the box's farthest corner is within reach; else each point's test."""
+    rng = np.random.default_rng(seed)
+    pts = np.concatenate([_surface(300, seed % 50), rng.normal(size=(count, 3)) * far])
+    frame = local_frame(pts)
+    centre, radius = spread(pts)
+    inside = np.linalg.norm(pts - centre, axis=1) <= STRAY_RADII * radius
+    if frame.inside is None:
+        assert inside.all()
+    else:
+        np.testing.assert_array_equal(frame.inside, inside)
+    assert frame.radius == radius
+    given_spread = local_frame(pts, spread(pts))
+    np.testing.assert_array_equal(given_spread.origin, frame.origin)
+    assert given_spread.strays == frame.strays and given_spread.radius == frame.radius
 
 
 def test_no_stray_without_a_radius():

@@ -39,8 +39,8 @@ def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monke
     monkeypatch.setattr(
         scale,
         "measure",
-        lambda p, label="cloud", lines=True, f=scale.measure: (
-            measured.append(label) or f(p, label, lines)
+        lambda p, label="cloud", lines=True, f=scale.measure, **kw: (
+            measured.append(label) or f(p, label, lines, **kw)
         ),
     )
     choice = registrar.choose_voxel(a, b)  # the pair's voxel, as register-batch reads it

@@ -45,7 +45,7 @@ def test_a_clouds_scale_and_frame_are_computed_once_per_array(monkeypatch):
     monkeypatch.setattr(
         scale,
         "measure",
-        lambda p, label="c", lines=True: calls.append(label) or real(p, lines=lines),
+        lambda p, label="c", lines=True, **kw: calls.append(label) or real(p, lines=lines, **kw),
     )
     lines = []
     real_lines = scale.scan_line_voxel
@@ -58,6 +58,8 @@ def test_a_clouds_scale_and_frame_are_computed_once_per_array(monkeypatch):
     assert calls == ["a"] and again.label == "renamed" and again.spacing == first.spacing
     assert lines == [1] and first.line_voxel == again.line_voxel == 0.0
     assert made.frame(a) is made.frame(a)
+    assert made.spread(a) is made.spread(a)  # one median and radius for the scale and frame
+    assert made.frame(a).radius == first.radius == made.spread(a).radius
     made.cloud_scale(a.copy(), "copy")  # another array: measured
     assert calls == ["a", "copy"]
 

@@ -96,8 +96,9 @@ def _drop_nonfinite(points: np.ndarray, path: str | os.PathLike[str]) -> LoadedC
     kept = 0
     for start in range(0, n, _CHUNK_ROWS):
         block = points[start : start + _CHUNK_ROWS]
-        finite = np.isfinite(block).all(axis=1)
-        k = int(np.count_nonzero(finite))
+        # the whole block at once first: a per-row reduction over 3 columns is slow
+        finite = None if np.isfinite(block).all() else np.isfinite(block).all(axis=1)
+        k = block.shape[0] if finite is None else int(np.count_nonzero(finite))
         if k == block.shape[0]:
             if kept != start:
                 points[kept : kept + k] = block  # numpy buffers overlapping copies

@@ -55,7 +55,7 @@ class Featurizer:
         self.voxel_size = float(self.extractor.voxel_size)
         self._scales = CloudScales(self.CACHE, self.measure)
         self._features_memo = Memo(self.CACHE)
-        self._frames = Memo(self.CACHE)
+        self._frames = Memo(2 * self.CACHE)  # frames and spreads
 
     @property
     def weights_sha256(self) -> str | None:
@@ -68,10 +68,10 @@ class Featurizer:
             scale = 1.0
         return as_points(cloud, label, scale, **load)
 
-    @staticmethod
-    def measure(points: np.ndarray, label: str = "cloud", lines: bool = True) -> CloudScale:
+    def measure(self, points: np.ndarray, label: str = "cloud", lines: bool = True) -> CloudScale:
         """How ``points (N, 3)`` are sampled: :class:`~byoc_cli.pipeline.scale.CloudScale`
-        (``lines``: :func:`~byoc_cli.pipeline.scale.measure`'s).
+        (``lines``: :func:`~byoc_cli.pipeline.scale.measure`'s; the radius is the
+        :meth:`spread`'s, which the cloud's :meth:`frame` reads too).
 
         Raises:
             RegistrationError: too few distinct points to read a scale from.
@@ -80,7 +80,15 @@ class Featurizer:
 
         from byoc_cli.pipeline.scale import measure
 
-        return measure(torch.from_numpy(points), label, lines)
+        radius = self.spread(points).radius
+        return measure(torch.from_numpy(points), label, lines, radius=radius)
+
+    def spread(self, points: np.ndarray):
+        """:func:`~byoc_cli.geometry.sampling.spread` of ``points (N, 3)``, computed once per
+        array while among the most recently used."""
+        from byoc_cli.geometry.sampling import spread
+
+        return self._frames.get(points, "spread", lambda: spread(points))
 
     def cloud_scale(self, points: np.ndarray, label: str = "cloud", lines: bool = True):
         """:meth:`measure` of ``points (N, 3)``, once per array
@@ -121,7 +129,7 @@ class Featurizer:
         per array while among the most recently used."""
         from byoc_cli.geometry.sampling import local_frame
 
-        return self._frames.get(points, None, lambda: local_frame(points))
+        return self._frames.get(points, None, lambda: local_frame(points, self.spread(points)))
 
     def extract(
         self,

@@ -150,9 +150,12 @@ class VoxelChoice(NamedTuple):
         }
 
 
-def measure(points: torch.Tensor, label: str = "cloud", lines: bool = True) -> CloudScale:
+def measure(
+    points: torch.Tensor, label: str = "cloud", lines: bool = True, radius: float | None = None
+) -> CloudScale:
     """The :class:`CloudScale` of ``points (N, 3)`` (``lines`` False: without
-    :attr:`~CloudScale.line_voxel`, None; :func:`scan_line_voxel` is most of the cost).
+    :attr:`~CloudScale.line_voxel`, None; :func:`scan_line_voxel` is most of the cost;
+    ``radius``: their :func:`~byoc_cli.geometry.sampling.cloud_radius` when it is known).
 
     Raises:
         RegistrationError: fewer than :data:`MIN_POINTS` distinct points (no scale can be
@@ -162,7 +165,7 @@ def measure(points: torch.Tensor, label: str = "cloud", lines: bool = True) -> C
     distinct = len(torch.unique(points, dim=0)) if len(points) < 10 * MIN_POINTS else len(points)
     if distinct < MIN_POINTS:
         raise RegistrationError(_too_few(points, distinct, label))
-    radius = cloud_radius(points)
+    radius = cloud_radius(points) if radius is None else radius
     check_radius(radius, label)
     spacing = nearest_spacing(points)
     if radius <= 0 or spacing <= 0 or radius < 2 * spacing:  # no extent: a few points repeated?
