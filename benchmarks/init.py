@@ -30,6 +30,7 @@ compared.
 
 Usage:
     python benchmarks/init.py [bench] [--pairs 28] [--seed 0] [--json OUT.json]
+    python benchmarks/init.py batch [--repeats 3]    # the register-batch timing alone
     python benchmarks/init.py collect --out calib.jsonl
     python benchmarks/init.py fit calib.jsonl [more.jsonl ...]
     python benchmarks/init.py sweep [--pairs 28]
@@ -162,6 +163,20 @@ def run_pairs(args) -> tuple[list[dict], list[tuple[np.ndarray, np.ndarray, np.n
     return records, kept
 
 
+def batch_pairs(args) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each pair's (source, target, near guess), the guesses drawn as :func:`run_pairs` draws
+    them (the same seed gives the same guesses), without running the methods."""
+    rng = np.random.default_rng(args.seed)
+    kept = []
+    for pair in rgbd_pairs(limit=args.pairs):
+        src, tgt = pair.load_source(), pair.load_target()
+        centroid = src.mean(axis=0)
+        near = perturbed(pair.T_gt, centroid, args.near_deg, args.near_m, rng)
+        perturbed(pair.T_gt, centroid, args.far_deg, args.near_m, rng)  # the far guess's draw
+        kept.append((src, tgt, near))
+    return kept
+
+
 def batch_times(kept, folder: Path, repeats: int = 3) -> dict[str, float]:
     """Median wall seconds of `register-batch` on the pairs without and with the init column
     (``repeats`` runs of each, interleaved, outputs overwritten), and the median of the
@@ -276,7 +291,7 @@ def within_errors(err, degrees: float, metres: float) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    commands = ["bench", "collect", "fit", "sweep"]
+    commands = ["bench", "batch", "collect", "fit", "sweep"]
     parser.add_argument("command", nargs="?", default="bench", choices=commands)
     parser.add_argument("files", nargs="*", type=Path, help="fit: the collections")
     parser.add_argument("--out", type=Path, help="collect: the JSON Lines file")
@@ -301,6 +316,16 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "sweep":
         sweep(args)
+        return 0
+    if args.command == "batch":
+        with tempfile.TemporaryDirectory(prefix="byoc-init-bench-") as folder:
+            seconds = batch_times(batch_pairs(args), Path(folder), args.repeats)
+        for kind in ("global", "init"):
+            runs = ", ".join(f"{s:.1f}" for s in seconds["runs"][kind])
+            print(f"{kind}: median {seconds[kind]:.1f} s ({runs})")
+        runs = seconds["runs"]
+        ratios = [i / g for i, g in zip(runs["init"], runs["global"], strict=True)]
+        print(f"ratio: median {seconds['ratio']:.3f} ({', '.join(f'{r:.3f}' for r in ratios)})")
         return 0
     records, kept = run_pairs(args)
     seconds = None

@@ -10,8 +10,7 @@ tree and no open3d, whose import alone took longer than the whole refinement doe
 steps themselves (moving the points, picking the nearest candidates, the normal equations)
 run in numpy: a step is a few dozen operations on a few thousand points, where torch's
 per-call cost dominates and each call hands the interpreter lock to the other worker thread
-of ``register-batch`` (the 28 pairs of ``benchmarks/init.py`` from their guesses: 11 % less
-wall time).
+of ``register-batch`` (``python benchmarks/init.py batch`` times it; CHANGELOG).
 
 Correspondences: each source point's 8 nearest target points among the 27 cells of the
 level's voxel around it are gathered once, and again only after a point has moved more
