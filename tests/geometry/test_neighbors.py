@@ -23,6 +23,7 @@ from byoc_cli.geometry.neighbors import (
     nearest_candidates,
     nearest_of,
     neighbor_positions,
+    smallest,
     voxel_average,
     voxel_means,
 )
@@ -250,3 +251,29 @@ def test_a_cell_index_refuses_a_cell_fuller_than_its_bound():
     with pytest.raises(ValueError, match="k-d tree"):
         CellIndex(pts.double(), 0.1)
     assert CellIndex(pts.double(), 0.1, max_per_cell=None).max_count == MAX_PER_CELL + 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(0, 40),
+    st.sampled_from([1, 2, 8, 27]),
+    st.integers(1, 30),
+    st.integers(0, 10_000),
+    st.booleans(),
+)
+def test_smallest_is_topk_up_to_the_order_of_equal_values(rows, k, extra, seed, coarse):
+    """Values as torch.topk's (ascending), and the same columns where a row's values differ;
+    rows of infinities (cells with no point) and ties (coarse values) included."""
+    g = torch.Generator().manual_seed(seed)
+    values = torch.rand(rows, k + extra - 1, generator=g)
+    if coarse:
+        values = (values * 4).floor()  # many ties
+    values[values > (2.5 if coarse else 0.7)] = float("inf")
+    got_values, got_columns = smallest(values, k)
+    want_values, want_columns = torch.topk(values, k, dim=1, largest=False)
+    assert torch.equal(got_values, want_values)
+    assert got_columns.dtype == torch.int64 and got_columns.shape == (rows, k)
+    assert torch.equal(values.gather(1, got_columns), got_values)
+    if not coarse and rows:
+        finite = torch.isfinite(want_values)
+        assert torch.equal(got_columns[finite], want_columns[finite])

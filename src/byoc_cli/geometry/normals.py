@@ -79,10 +79,12 @@ def _cell_normals(
     # the boxes: around each occupied cell of the queries (a dense table where it fits)
     dense = DenseCells.build(cells, torch.arange(C), 1) if C else None
     pos = dense.lookup(q_cells, 1) if dense is not None else neighbor_positions(uniq, q_cells)
-    pos = torch.where(pos >= 0, pos, C)
-    total = moments[pos[:, 0]].clone()
+    # one row of cells per offset, gathered with index_select: faster than indexing with a
+    # column of pos, and the same sums in the same order
+    offsets = torch.where(pos >= 0, pos, C).T.contiguous()  # (27, Q)
+    total = moments.index_select(0, offsets[0])
     for k in range(1, 27):
-        total += moments[pos[:, k]]
+        total += moments.index_select(0, offsets[k])
     n = total[:, 0].clamp_min(1.0)
     mean = total[:, 1:4] / n[:, None]
     xx, xy, xz, yy, yz, zz = (total[:, 4 + i] / n for i in range(6))
