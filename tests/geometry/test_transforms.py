@@ -15,7 +15,7 @@ from byoc_cli.geometry import (
     rotation_error_deg,
     translation_error,
 )
-from byoc_cli.geometry.transforms import axis_angle_to_matrix
+from byoc_cli.geometry.transforms import axis_angle_matrix, axis_angle_to_matrix
 
 
 def test_apply_hand_worked_example():
@@ -74,3 +74,13 @@ def test_shape_errors():
         apply_transform(torch.eye(3), torch.zeros(2, 3))
     with pytest.raises(ShapeError, match="points_src"):
         apply_transform(torch.eye(4), torch.zeros(2, 2))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-4.0, 4.0), min_size=3, max_size=3))
+def test_the_numpy_rotation_of_a_vector_is_the_torch_one(vector):
+    R = axis_angle_matrix(vector)
+    expected = axis_angle_to_matrix(torch.tensor(vector, dtype=torch.float64)).numpy()
+    assert R.shape == (3, 3)
+    assert abs(R - expected).max() < 1e-12
+    assert abs(R.T @ R - torch.eye(3).double().numpy()).max() < 1e-12

@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.fitting.point_to_plane import PlaneStep, _rotation
+from byoc_cli.fitting.point_to_plane import PlaneStep
+from byoc_cli.geometry.transforms import axis_angle_matrix
 
 #: the variance of a point's disc along its normal, as a share of the variance across it
 FLATNESS = 1e-3
@@ -86,7 +87,7 @@ def plane_to_plane_step(
     lam = np.linalg.eigvalsh(H)
     ridge = 1e-12 * max(lam[-1], 1e-300)
     xi = -np.linalg.solve(H + ridge * np.eye(6), g)
-    R = _rotation(xi[:3] / radius)
+    R = axis_angle_matrix(xi[:3] / radius)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, c - R @ c + xi[3:]
     return PlaneStep(torch.from_numpy(T), 6, torch.from_numpy(lam / max(lam[-1], 1e-300)))

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.transforms import axis_angle_to_matrix, make_transform
+from byoc_cli.geometry.transforms import axis_angle_matrix, axis_angle_to_matrix, make_transform
 
 #: directions with eigenvalue below this share of the largest are held (0 = none)
 DEGENERACY = 0.0
@@ -95,7 +95,7 @@ def point_to_plane_step(
     top = max(lam[-1], 1e-300)
     keep = lam > max(degeneracy, 1e-12) * top
     xi = B @ (U[:, keep] @ ((U[:, keep].T @ (B.T @ g)) / lam[keep]))
-    R = _rotation(xi[:3] / radius)
+    R = axis_angle_matrix(xi[:3] / radius)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, c - R @ c + xi[3:]
     full = np.linalg.eigvalsh(H)
@@ -111,14 +111,6 @@ def _array(x: torch.Tensor | np.ndarray) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().to(device="cpu", dtype=torch.float64).numpy()
     return np.asarray(x, dtype=np.float64)
-
-
-def _rotation(axis_angle: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` rotation of ``axis_angle (3,)`` (Rodrigues' formula)."""
-    theta = float(np.linalg.norm(axis_angle))
-    x, y, z = axis_angle / max(theta, 1e-12)
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * (K @ K)
 
 
 def _free_basis(n: np.ndarray, w: np.ndarray | None, sliding: float) -> np.ndarray:

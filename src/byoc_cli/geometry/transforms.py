@@ -163,6 +163,15 @@ def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     return eye + s * K + (1 - c) * (K @ K)
 
 
+def axis_angle_matrix(axis_angle: np.ndarray) -> np.ndarray:
+    """:func:`axis_angle_to_matrix` of one ``(3,)`` rotation vector in numpy: ``(3, 3)``
+    float64 (the steps of the refinement, where a torch call costs more than the formula)."""
+    theta = float(np.linalg.norm(axis_angle))
+    x, y, z = np.asarray(axis_angle, dtype=np.float64) / max(theta, 1e-12)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * (K @ K)
+
+
 def random_rigid_transform(
     max_angle_deg: float,
     max_translation: float,

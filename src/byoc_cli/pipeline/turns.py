@@ -136,8 +136,7 @@ def best_turn(
 def _same_place(T_a: np.ndarray, T_b: np.ndarray, voxel: float, at: np.ndarray) -> bool:
     """Whether ``T_a`` and ``T_b (4, 4)`` turn within SAME_DEG of each other and move the
     point ``at (3,)`` (the source's centre) to within SAME_VOXELS voxels of each other."""
-    from byoc_cli.pipeline.posegraph import rotation_angle_deg
+    from byoc_cli.pipeline.local import correction
 
-    degrees = rotation_angle_deg(T_a[:3, :3] @ T_b[:3, :3].T)
-    apart = (T_a[:3, :3] - T_b[:3, :3]) @ at + (T_a[:3, 3] - T_b[:3, 3])
-    return degrees < SAME_DEG and float(np.linalg.norm(apart)) < SAME_VOXELS * voxel
+    apart = correction(T_a, T_b, at)
+    return apart.rotation_deg < SAME_DEG and apart.translation < SAME_VOXELS * voxel
