@@ -323,3 +323,31 @@ def test_the_two_directions_side_by_side_give_the_same_correspondences():
         pool.shutdown()
     for x, y in zip(alone, split, strict=True):
         assert torch.equal(x, y)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    rows=st.integers(1, 20),
+    cols=st.integers(2, 30),
+    k=st.integers(1, 3),
+    levels=st.integers(1, 6),  # few distinct values: ties
+    nan_row=st.booleans(),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_smallest_columns_give_topks_values(rows, cols, k, levels, nan_row, dtype, seed):
+    g = torch.Generator().manual_seed(seed)
+    score = torch.randint(0, levels, (rows, cols), generator=g).to(dtype)
+    k = min(k, cols)  # feature_knn's clip
+    if nan_row:
+        score[0, cols // 2] = float("nan")
+    expected = torch.topk(score, k, dim=1, largest=False, sorted=True)
+    columns = ratio_mod._smallest_columns(score.clone(), k)
+    assert columns.dtype == torch.int64 and columns.shape == (rows, k)
+    torch.testing.assert_close(  # rows with NaN: topk's
+        score.gather(1, columns), expected.values, rtol=0, atol=0, equal_nan=True
+    )
+    if not nan_row and k <= 2:  # the first of equal values, then the next
+        for r in range(rows):
+            order = sorted(range(cols), key=lambda c: (score[r, c].item(), c))
+            assert columns[r].tolist() == order[:k]
