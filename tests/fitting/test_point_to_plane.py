@@ -130,6 +130,8 @@ def test_batched_steps_agree_with_one_step_each(generator, degeneracy):
         one = point_to_plane_step(P[s][keep], Q[s][keep], N[s][keep], degeneracy=degeneracy)
         assert torch.allclose(steps[s], one.T, atol=1e-12)
     assert torch.equal(steps[3], torch.eye(4, dtype=torch.float64))
+    arrays = point_to_plane_steps(*(x.numpy() for x in (P, Q, N, W)), degeneracy=degeneracy)
+    assert torch.equal(arrays, steps)  # arrays and tensors: the same steps
 
 
 def test_batched_steps_check_their_shapes():

@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
@@ -15,7 +16,11 @@ from byoc_cli.geometry import (
     rotation_error_deg,
     translation_error,
 )
-from byoc_cli.geometry.transforms import axis_angle_matrix, axis_angle_to_matrix
+from byoc_cli.geometry.transforms import (
+    axis_angle_matrices,
+    axis_angle_matrix,
+    axis_angle_to_matrix,
+)
 
 
 def test_apply_hand_worked_example():
@@ -84,3 +89,14 @@ def test_the_numpy_rotation_of_a_vector_is_the_torch_one(vector):
     assert R.shape == (3, 3)
     assert abs(R - expected).max() < 1e-12
     assert abs(R.T @ R - torch.eye(3).double().numpy()).max() < 1e-12
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.lists(st.floats(-4.0, 4.0), min_size=3, max_size=3), min_size=1, max_size=6))
+def test_the_numpy_rotations_of_vectors_are_the_torch_ones(vectors):
+    vectors[0] = [0.0, 0.0, 0.0]  # the identity among them
+    R = axis_angle_matrices(np.array(vectors))
+    expected = axis_angle_to_matrix(torch.tensor(vectors, dtype=torch.float64)).numpy()
+    assert R.shape == (len(vectors), 3, 3)
+    assert abs(R - expected).max() < 1e-12
+    assert np.array_equal(R[0], np.eye(3))

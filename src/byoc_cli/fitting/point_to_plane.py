@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.transforms import axis_angle_matrix, axis_angle_to_matrix, make_transform
+from byoc_cli.geometry.transforms import axis_angle_matrices, axis_angle_matrix
 
 #: directions with eigenvalue below this share of the largest are held (0 = none)
 DEGENERACY = 0.0
@@ -128,21 +128,21 @@ def _free_basis(n: np.ndarray, w: np.ndarray | None, sliding: float) -> np.ndarr
 
 
 def point_to_plane_steps(
-    p: torch.Tensor,
-    q: torch.Tensor,
-    n: torch.Tensor,
-    weights: torch.Tensor,
+    p: torch.Tensor | np.ndarray,
+    q: torch.Tensor | np.ndarray,
+    n: torch.Tensor | np.ndarray,
+    weights: torch.Tensor | np.ndarray,
     degeneracy: float = DEGENERACY,
     sliding: float = SLIDING,
 ) -> torch.Tensor:
     """:func:`point_to_plane_step` of ``S`` problems at once (the restarts of a refinement:
-    one call instead of ``S``, each a few dozen operations on small tensors).
+    one call instead of ``S``), in numpy as the single step is.
 
     The held translations are projected out instead of cut from the basis (``P H P`` has
     eigenvalue 0 along them, which the ``degeneracy`` floor drops), so a step agrees with
     :func:`point_to_plane_step` up to rounding, not to the last bit.
 
-    Args:
+    Args (tensors or numpy arrays):
         p, q, n: ``(S, K, 3)`` source points, their target points and unit normals.
         weights: ``(S, K)`` non-negative weights (0: a point that does not take part).
         degeneracy, sliding: as :func:`point_to_plane_step`.
@@ -155,34 +155,37 @@ def point_to_plane_steps(
     """
     if p.ndim != 3 or p.shape[-1] != 3 or q.shape != p.shape or n.shape != p.shape:
         raise ShapeError(f"p, q, n must all be (S, K, 3), got {p.shape}, {q.shape}, {n.shape}")
-    if weights.shape != p.shape[:2]:
+    if tuple(weights.shape) != tuple(p.shape[:2]):
         raise ShapeError(f"weights must be (S, K) = {tuple(p.shape[:2])}, got {weights.shape}")
-    p, q, n, w = p.double(), q.double(), n.double(), weights.double()
+    p, q, n, w = (_array(x) for x in (p, q, n, weights))
     total = w.sum(1)  # (S,)
-    safe = total.clamp_min(1e-300)
-    c = (w[..., None] * p).sum(1) / safe[:, None]  # (S, 3)
+    safe = np.maximum(total, 1e-300)
+    c = np.einsum("sk,skd->sd", w, p) / safe[:, None]  # (S, 3)
     centred = p - c[:, None]
-    radius = torch.sqrt((w * (centred**2).sum(2)).sum(1) / safe).clamp_min(1e-9)  # (S,)
-    J = torch.cat([torch.linalg.cross(centred, n) / radius[:, None, None], n], dim=2)
+    radius = np.maximum(np.sqrt((w * (centred**2).sum(2)).sum(1) / safe), 1e-9)  # (S,)
+    J = np.concatenate([np.cross(centred, n) / radius[:, None, None], n], axis=2)  # (S, K, 6)
     r = ((p - q) * n).sum(2)  # (S, K)
-    H = J.transpose(1, 2) @ (w[..., None] * J)  # (S, 6, 6)
-    g = -(J.transpose(1, 2) @ (w * r)[..., None])[..., 0]  # (S, 6)
+    H = J.transpose(0, 2, 1) @ (w[..., None] * J)  # (S, 6, 6)
+    g = -np.einsum("skd,sk->sd", J, w * r)  # (S, 6)
     P = _free_projector(n, w, sliding)
-    lam, U = torch.linalg.eigh(P @ H @ P)
-    top = lam[:, -1:].clamp_min(1e-300)
+    lam, U = np.linalg.eigh(P @ H @ P)
+    top = np.maximum(lam[:, -1:], 1e-300)
     keep = (lam > max(degeneracy, 1e-12) * top) & (total > 0)[:, None]
-    inverse = torch.where(keep, 1.0 / torch.where(keep, lam, 1.0), 0.0)
-    xi = (U @ (inverse * (U.transpose(1, 2) @ (P @ g[..., None]))[..., 0])[..., None])[..., 0]
-    R = axis_angle_to_matrix(xi[:, :3] / radius[:, None])
-    t = c - (R @ c[..., None])[..., 0] + xi[:, 3:]
-    return make_transform(R, t)
+    inverse = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    Pg = (P @ g[..., None])[..., 0]
+    xi = (U @ (inverse * (U.transpose(0, 2, 1) @ Pg[..., None])[..., 0])[..., None])[..., 0]
+    R = axis_angle_matrices(xi[:, :3] / radius[:, None])
+    T = np.tile(np.eye(4), (len(R), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = c - (R @ c[..., None])[..., 0] + xi[:, 3:]
+    return torch.from_numpy(T)
 
 
-def _free_projector(n: torch.Tensor, w: torch.Tensor, sliding: float) -> torch.Tensor:
+def _free_projector(n: np.ndarray, w: np.ndarray, sliding: float) -> np.ndarray:
     """``(S, 6, 6)`` projector onto the motions of :func:`_free_basis`, for normals
     ``n (S, K, 3)`` and weights ``w (S, K)``."""
-    mu, E = torch.linalg.eigh((n.transpose(1, 2) * w[:, None]) @ n)  # (S, 3), (S, 3, 3)
-    held = (mu < sliding * mu[:, -1:].clamp_min(1e-300)).to(E.dtype)  # (S, 3)
-    C = torch.zeros(len(n), 6, 3, dtype=torch.float64)
+    mu, E = np.linalg.eigh((n.transpose(0, 2, 1) * w[:, None]) @ n)  # (S, 3), (S, 3, 3)
+    held = (mu < sliding * np.maximum(mu[:, -1:], 1e-300)).astype(np.float64)  # (S, 3)
+    C = np.zeros((len(n), 6, 3))
     C[:, 3:] = E * held[:, None, :]
-    return torch.eye(6, dtype=torch.float64) - C @ C.transpose(1, 2)
+    return np.eye(6) - C @ C.transpose(0, 2, 1)

@@ -172,6 +172,17 @@ def axis_angle_matrix(axis_angle: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * (K @ K)
 
 
+def axis_angle_matrices(axis_angle: np.ndarray) -> np.ndarray:
+    """:func:`axis_angle_to_matrix` of ``(S, 3)`` rotation vectors in numpy: ``(S, 3, 3)``
+    float64 (the batched steps of the restarts)."""
+    v = np.asarray(axis_angle, dtype=np.float64)
+    theta = np.linalg.norm(v, axis=1)[:, None, None]  # (S, 1, 1)
+    x, y, z = (v / np.maximum(theta[:, :, 0], 1e-12)).T
+    zero = np.zeros_like(x)
+    K = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=1).reshape(-1, 3, 3)
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
+
+
 def random_rigid_transform(
     max_angle_deg: float,
     max_translation: float,

@@ -8,15 +8,17 @@ import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from byoc_cli.fitting.point_to_plane import point_to_plane_steps
-from byoc_cli.geometry.neighbors import CellIndex, Nearest, candidate_coordinates, nearest_of
+from byoc_cli.geometry.neighbors import CellIndex, Nearest, candidate_coordinates
 from byoc_cli.pipeline.refine import (
     ITERATIONS,
     MIN_CORRESPONDENCES,
     RESEARCH,
     TOLERANCE,
+    _nearest,
     _search,
 )
 from byoc_cli.pipeline.refine_levels import (
@@ -132,32 +134,34 @@ def refine_starts(
         :attr:`Refinement.fitness`).
     """
     src, tgt = _prepared(points_src, voxel_size), _prepared(points_tgt, voxel_size)
-    T = starts.detach().to(device="cpu", dtype=torch.float64).clone()
-    fitness = torch.zeros(len(T), dtype=torch.float64)
+    T = starts.detach().to(device="cpu", dtype=torch.float64).numpy().copy()
+    fitness = np.zeros(len(T))
     for level, (size, dist, _) in enumerate(src.levels):
         p = src.source(level, max_source_points)
         q, n, index = tgt.target(level)
         if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
             break
+        # the steps in numpy, as refine_multiscale's (the searches stay in torch)
+        p, q, n = p.numpy(), q.numpy(), n.numpy()
         search = _StartSearch(index, SEARCH_REACH[level], RESEARCH * size, parallel)
-        moving = torch.arange(len(T))
+        moving = np.arange(len(T))
         for _ in range(ITERATIONS):
             if len(moving) == 0:
                 break
-            moved = p @ T[moving, :3, :3].transpose(1, 2) + T[moving, None, :3, 3]  # (A, K, 3)
+            moved = p @ T[moving, :3, :3].transpose(0, 2, 1) + T[moving, None, :3, 3]  # (A, K, 3)
             near = search.nearest(moving, moved)
             ok = near.distance2 <= dist**2  # (A, K)
-            fitness[moving] = ok.double().mean(1)
+            fitness[moving] = ok.mean(1)
             enough = ok.sum(1) >= MIN_CORRESPONDENCES  # fewer: the start stops at this level
             moving, moved, ok, j = moving[enough], moved[enough], ok[enough], near.index[enough]
-            j = j.clamp_min(0)
-            steps = point_to_plane_steps(moved, q[j], n[j], ok.double())
+            j = np.maximum(j, 0)
+            steps = point_to_plane_steps(moved, q[j], n[j], ok.astype(np.float64)).numpy()
             T[moving] = steps @ T[moving]
-            cos = (steps[:, :3, :3].diagonal(dim1=1, dim2=2).sum(1) - 1) / 2
-            angle = torch.arccos(cos.clamp(-1.0, 1.0))
-            shift = torch.linalg.vector_norm(steps[:, :3, 3], dim=1)
+            cos = (np.trace(steps[:, :3, :3], axis1=1, axis2=2) - 1) / 2
+            angle = np.arccos(np.clip(cos, -1.0, 1.0))
+            shift = np.linalg.norm(steps[:, :3, 3], axis=1)
             moving = moving[~((angle < TOLERANCE) & (shift < TOLERANCE * voxel_size))]
-    return T, fitness
+    return torch.from_numpy(T), torch.from_numpy(fitness)
 
 
 class _StartSearch:
@@ -166,27 +170,31 @@ class _StartSearch:
 
     def __init__(self, index: CellIndex, reach: int, research: float, parallel) -> None:
         self.index, self.reach, self.research, self.parallel = index, reach, research, parallel
-        self.anchor: dict[int, torch.Tensor] = {}
-        self.candidates: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self.origin = index.origin.numpy()
+        self.anchor: dict[int, np.ndarray] = {}
+        self.candidates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def nearest(self, starts: torch.Tensor, moved: torch.Tensor) -> Nearest:
+    def nearest(self, starts: np.ndarray, moved: np.ndarray) -> Nearest:
         """:class:`Nearest` of ``moved (A, K, 3)``, the points of ``starts (A,)``, as
-        ``(A, K)`` tensors."""
+        ``(A, K)`` arrays."""
         ids = starts.tolist()
         stale = [
             a
             for a, s in enumerate(ids)
             if s not in self.anchor
-            or float((moved[a] - self.anchor[s]).abs().max()) > self.research
+            or float(np.abs(moved[a] - self.anchor[s]).max()) > self.research
         ]
         if stale:
-            queries = moved[stale].reshape(-1, 3)
+            queries = torch.from_numpy(moved[stale].reshape(-1, 3))
             found = _search(self.index, queries, self.reach, self.parallel)
-            coordinates = candidate_coordinates(self.index, found).chunk(len(stale), dim=1)
-            for a, part, coords in zip(stale, found.chunk(len(stale)), coordinates, strict=True):
+            coordinates = candidate_coordinates(self.index, found).numpy()
+            found = found.numpy()
+            size = len(found) // len(stale)
+            for k, a in enumerate(stale):
                 self.anchor[ids[a]] = moved[a]
-                self.candidates[ids[a]] = (part, coords)
-        candidates = torch.cat([self.candidates[s][0] for s in ids])
-        coordinates = torch.cat([self.candidates[s][1] for s in ids], dim=1)
-        near = nearest_of(self.index, moved.reshape(-1, 3), candidates, coordinates)
-        return Nearest(near.index.view(len(ids), -1), near.distance2.view(len(ids), -1))
+                rows = slice(k * size, (k + 1) * size)
+                self.candidates[ids[a]] = (found[rows], coordinates[:, rows])
+        candidates = np.concatenate([self.candidates[s][0] for s in ids])
+        coordinates = np.concatenate([self.candidates[s][1] for s in ids], axis=1)
+        near = _nearest(moved.reshape(-1, 3), self.origin, candidates, coordinates)
+        return Nearest(near.index.reshape(len(ids), -1), near.distance2.reshape(len(ids), -1))
