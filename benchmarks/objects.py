@@ -303,6 +303,7 @@ def cues(args: argparse.Namespace) -> None:
 
 
 def judge(args: argparse.Namespace) -> None:
+    right_refused = 0
     for line in args.summary.read_text().splitlines():
         r = json.loads(line)
         name = Path(r["source"]).parent.name
@@ -311,6 +312,7 @@ def judge(args: argparse.Namespace) -> None:
             continue
         folder = (args.summary.parent / r["source"]).parent
         ok, rot, share = right(np.array(r["T_tgt_src"]), folder)
+        right_refused += ok and not r["passed"]
         info = json.loads((folder / "info.json").read_text())
         cm = 100 * share * info.get("size", info.get("scene_size_m"))
         fb = r.get("fallback") or {}
@@ -323,7 +325,7 @@ def judge(args: argparse.Namespace) -> None:
             f"learned {fb.get('learned_confidence', r['confidence']):.2f} "
             f"fb {'used' if fb.get('used') else ('ran' if fb else '-')}  {stages}"
         )
-    counts = _count_byoc(args.summary)
+    counts = {**_count_byoc(args.summary), "right_but_refused": right_refused}
     print(" ".join(f"{k} {v}" for k, v in counts.items()))
 
 
