@@ -314,6 +314,7 @@ def test_the_steps_nearest_points_are_those_of_the_cell_index(generator):
         candidate_coordinates,
         nearest_candidates,
         nearest_of,
+        nearest_of_arrays,
     )
 
     target = _boxes(4000, ROOM, generator)
@@ -325,7 +326,7 @@ def test_the_steps_nearest_points_are_those_of_the_cell_index(generator):
     coordinates = candidate_coordinates(index, candidates)
     moved = queries + 0.004  # candidates kept while the points move
     expected = nearest_of(index, moved, candidates, coordinates)
-    got = refine_module._nearest(
+    got = nearest_of_arrays(
         moved.numpy(), index.origin.numpy(), candidates.numpy(), coordinates.numpy()
     )
     assert (got.index == expected.index.numpy()).all()

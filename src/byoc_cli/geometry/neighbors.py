@@ -356,6 +356,23 @@ def nearest_of(
     return Nearest(candidates.gather(1, pick[:, None])[:, 0], best)
 
 
+def nearest_of_arrays(
+    moved: np.ndarray, origin: np.ndarray, candidates: np.ndarray, coordinates: np.ndarray
+) -> Nearest:
+    """:func:`nearest_of` in numpy, the same arithmetic (the refinement's steps, which run in
+    numpy): for each of ``moved (Q, 3)``, the nearest of its ``candidates (Q, k)`` whose
+    ``coordinates (3, Q, k)`` float32 (:func:`candidate_coordinates`) are offsets from
+    ``origin (3,)``; numpy arrays."""
+    q = (moved - origin).T.astype(np.float32)
+    d2 = np.square(coordinates[0] - q[0][:, None])
+    for axis in (1, 2):
+        d2 += np.square(coordinates[axis] - q[axis][:, None])
+    pick = d2.argmin(axis=1)[:, None]
+    return Nearest(
+        np.take_along_axis(candidates, pick, 1)[:, 0], np.take_along_axis(d2, pick, 1)[:, 0]
+    )
+
+
 def candidate_coordinates(index: CellIndex, candidates: torch.Tensor) -> torch.Tensor:
     """``(3, Q, k)`` float32 offsets from ``index.origin`` of the points ``candidates (Q, k)``
     (-1: the point at infinity), for :func:`nearest_of`."""

@@ -42,6 +42,7 @@ from byoc_cli.geometry.neighbors import (
     candidate_coordinates,
     nearest_candidates,
     nearest_of,
+    nearest_of_arrays,
 )
 from byoc_cli.pipeline.refine_levels import (
     LEVELS,
@@ -143,7 +144,7 @@ def refine_multiscale(
                 candidates = found.numpy()
                 coordinates = candidate_coordinates(index, found).numpy()
                 anchor = moved
-            near = _nearest(moved, origin, candidates, coordinates)
+            near = nearest_of_arrays(moved, origin, candidates, coordinates)
             fitness, level_rmse, step = _meet(
                 moved, near, planes, dist, voxel_size, (degeneracy, sliding)
             )
@@ -192,22 +193,6 @@ def measure_fit(
     if step is None:
         return Refinement(T, 0, fitness)
     return Refinement(T, step.rank, fitness, rmse, float(step.eigenvalues[0]))
-
-
-def _nearest(
-    moved: np.ndarray, origin: np.ndarray, candidates: np.ndarray, coordinates: np.ndarray
-) -> Nearest:
-    """:func:`~byoc_cli.geometry.neighbors.nearest_of` in numpy, the same arithmetic: for
-    each of ``moved (Q, 3)``, the nearest of its ``candidates (Q, k)`` whose
-    ``coordinates (3, Q, k)`` float32 are offsets from ``origin (3,)``; numpy arrays."""
-    q = (moved - origin).T.astype(np.float32)
-    d2 = np.square(coordinates[0] - q[0][:, None])
-    for axis in (1, 2):
-        d2 += np.square(coordinates[axis] - q[axis][:, None])
-    pick = d2.argmin(axis=1)[:, None]
-    return Nearest(
-        np.take_along_axis(candidates, pick, 1)[:, 0], np.take_along_axis(d2, pick, 1)[:, 0]
-    )
 
 
 def _meet(

@@ -12,13 +12,17 @@ import numpy as np
 import torch
 
 from byoc_cli.fitting.point_to_plane import point_to_plane_steps
-from byoc_cli.geometry.neighbors import CellIndex, Nearest, candidate_coordinates
+from byoc_cli.geometry.neighbors import (
+    CellIndex,
+    Nearest,
+    candidate_coordinates,
+    nearest_of_arrays,
+)
 from byoc_cli.pipeline.refine import (
     ITERATIONS,
     MIN_CORRESPONDENCES,
     RESEARCH,
     TOLERANCE,
-    _nearest,
     _search,
 )
 from byoc_cli.pipeline.refine_levels import (
@@ -196,5 +200,5 @@ class _StartSearch:
                 self.candidates[ids[a]] = (found[rows], coordinates[:, rows])
         candidates = np.concatenate([self.candidates[s][0] for s in ids])
         coordinates = np.concatenate([self.candidates[s][1] for s in ids], axis=1)
-        near = _nearest(moved.reshape(-1, 3), self.origin, candidates, coordinates)
+        near = nearest_of_arrays(moved.reshape(-1, 3), self.origin, candidates, coordinates)
         return Nearest(near.index.reshape(len(ids), -1), near.distance2.reshape(len(ids), -1))
