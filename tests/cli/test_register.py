@@ -672,6 +672,27 @@ def test_a_smooth_pair_is_registered_with_fpfh_and_the_report_says_why(runner, t
     assert "(FPFH features: smooth surfaces," in run.stderr
 
 
+@pytest.mark.parametrize("agree", [True, False])
+def test_the_summary_line_says_whether_the_repeats_reproduced_a_smooth_result(agree):
+    from types import SimpleNamespace
+
+    from byoc_cli.cli.register import summary_line
+
+    note = {"repeats": [{}, {}], "agree": agree, "model_confidence": 0.3}
+    result = SimpleNamespace(
+        path="global", confidence=0.74 if agree else 0.3, num_inliers=45,
+        num_correspondences=2000, inlier_threshold=0.01, voxel_size=0.005, fallback=None,
+        features="fpfh", features_choice={"first": "fpfh", "rough_share": [0.0, 0.01]},
+        reproduced=note, init=None,
+    )  # fmt: skip
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    assert line.endswith("rough; reproduced by 2 repeats, confidence 0.300 before)") == agree
+    assert line.endswith("rough; not reproduced by its 2 repeats)") != agree
+    result.reproduced = None  # no repeats ran
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    assert line.endswith("(FPFH features: smooth surfaces, 0 % and 1 % rough)")
+
+
 def test_init_dash_reads_the_pose_from_stdin(runner, tmp_path):
     from byoc_cli.io import format_transform
 

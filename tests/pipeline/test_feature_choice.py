@@ -1,5 +1,6 @@
-"""Which features a pair starts with: the rule by hand, FPFH first and the learned features as
-its second opinion with stand-ins, and the whole engine on a smooth and a cluttered pair."""
+"""Which features a pair starts with: the rule by hand, FPFH first, its repeats and the learned
+features as its second opinion with stand-ins, and the whole engine on a smooth and a
+cluttered pair."""
 
 from __future__ import annotations
 
@@ -9,11 +10,18 @@ import numpy as np
 import pytest
 
 from byoc_cli.errors import RegistrationError
+from byoc_cli.geometry.transforms import axis_angle_matrix
 from byoc_cli.pipeline.feature_choice import (
+    AGREE_DEG,
+    AGREE_VOXELS,
+    REPRODUCE_FLOOR,
+    REPRODUCE_RMSE,
+    REPRODUCED_CONFIDENCE,
     SMOOTH_FPFH,
     SMOOTH_SHARE,
     applies,
     choose_features,
+    pose_gap,
     smooth_first,
 )
 from byoc_cli.pipeline.results import Registration
@@ -40,28 +48,54 @@ def test_only_learned_features_with_an_auto_voxel_and_the_fpfh_fallback_choose()
     assert not applies(made(fallback=None))  # --fallback none
 
 
-def _registration(confidence: float, features: str, tx: float = 1.0) -> Registration:
-    T = np.eye(4)
-    T[0, 3] = tx
+def _registration(
+    confidence: float, features: str, T: np.ndarray | float = 1.0, rmse: float = 0.2
+) -> Registration:
+    if not isinstance(T, np.ndarray):
+        T, tx = np.eye(4), T
+        T[0, 3] = tx
     return Registration(
         T, confidence, confidence >= 0.45, 10, 20, 0.5, 0.5, 100, 100, 0.1, 0.05, features,
-        "ransac", "multiscale", 1000, 100, 0, None, {"fit": 0.1},
+        "ransac", "multiscale", 1000, 100, 0, None, {"fit": 0.1}, cues={"rmse": rmse},
     )  # fmt: skip
 
 
 class _Made:
-    """A learned registrar's stand-in: FPFH gives ``fpfh`` (a confidence, or raises)."""
+    """A learned registrar's stand-in: FPFH gives ``fpfh`` (a confidence, or raises) at
+    x = 2 m, and its repeats give ``repeats`` in turn (a ``T`` in metres, or None: it
+    raises); ``calls`` records each call's seed and changes beyond :data:`SMOOTH_FPFH`."""
 
     fallback_below = 0.45
+    recipe = SimpleNamespace(seed=0)
 
-    def __init__(self, fpfh):
-        self.fpfh = fpfh
+    def __init__(self, fpfh, repeats=None, rmse=0.2):
+        self.fpfh, self.rmse = fpfh, rmse
+        self.repeats = list(repeats or [])
+        self.calls = []
 
     def fpfh_registration(self, clouds, scales, seed=None, changes=()):
-        assert changes == SMOOTH_FPFH
-        if self.fpfh is None:
+        assert changes[: len(SMOOTH_FPFH)] == SMOOTH_FPFH
+        self.calls.append((seed, changes[len(SMOOTH_FPFH) :]))
+        if len(self.calls) == 1:
+            if self.fpfh is None:
+                raise RegistrationError("no correspondences")
+            return _registration(self.fpfh, "fpfh", 2.0, self.rmse)
+        T = self.repeats.pop(0) if self.repeats else _shifted(0.0)
+        if T is None:
             raise RegistrationError("no correspondences")
-        return _registration(self.fpfh, "fpfh", tx=2.0)
+        return _registration(0.3, "fpfh", T)
+
+
+def _shifted(dx: float, degrees: float = 0.0) -> np.ndarray:
+    """The stand-in's FPFH pose (x = 2 m) moved by ``dx`` and turned by ``degrees`` about z
+    through the origin (the source's centroid of :data:`_CLOUDS`)."""
+    T = np.eye(4)
+    T[:3, :3] = axis_angle_matrix(np.array([0.0, 0.0, np.radians(degrees)]))
+    T[0, 3] = 2.0 + dx
+    return T
+
+
+_CLOUDS = (np.zeros((4, 3)), None)  # the source's centroid at the origin
 
 
 def _learned(confidence, calls):
@@ -75,8 +109,10 @@ def _learned(confidence, calls):
 def test_fpfh_above_the_gate_is_kept_and_the_learned_features_never_run():
     calls = []
     picked = choose_features([0.0, 0.0])
-    got = smooth_first(_Made(0.9), (None, None), [], _learned(0.99, calls), picked, scale=4.0)
+    made = _Made(0.9)
+    got = smooth_first(made, (None, None), [], _learned(0.99, calls), picked, scale=4.0)
     assert calls == [] and got.features == "fpfh" and got.passed
+    assert len(made.calls) == 1 and got.reproduced is None  # above the gate: no repeats
     assert got.T_tgt_src[0, 3] == pytest.approx(0.5)  # metres into the target's units
     assert got.features_choice["first"] == "fpfh" and got.fallback is None
     assert "first" in got.timings
@@ -84,7 +120,7 @@ def test_fpfh_above_the_gate_is_kept_and_the_learned_features_never_run():
 
 @pytest.mark.parametrize(
     ("fpfh", "learned", "kept"),
-    [(0.3, 0.6, "byoc"), (0.3, 0.1, "fpfh"), (None, 0.2, "byoc")],
+    [(0.15, 0.6, "byoc"), (0.15, 0.1, "fpfh"), (None, 0.2, "byoc")],
 )
 def test_below_the_gate_the_learned_features_run_and_the_more_confident_is_kept(
     fpfh, learned, kept
@@ -98,12 +134,75 @@ def test_below_the_gate_the_learned_features_run_and_the_more_confident_is_kept(
     assert got.passed == (got.confidence >= 0.45)
 
 
-@pytest.mark.parametrize("fpfh", [0.9, 0.3])
+@pytest.mark.parametrize("fpfh", [0.9, 0.15])
 def test_without_a_second_opinion_fpfh_is_the_result_above_or_below_the_gate(fpfh):
     got = smooth_first(_Made(fpfh), (None, None), [], None, choose_features([0.0, 0.0]), None)
     assert got.features == "fpfh" and got.passed == (fpfh >= 0.45) and got.fallback is None
     with pytest.raises(RegistrationError, match="no correspondences"):
         smooth_first(_Made(None), (None, None), [], None, choose_features([0.0, 0.0]), None)
+
+
+def test_a_result_between_the_floor_and_the_gate_that_both_repeats_reproduce_passes():
+    made = _Made(0.3)
+    got = smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), scale=4.0, seed=5)
+    assert got.confidence == REPRODUCED_CONFIDENCE and got.passed
+    assert got.T_tgt_src[0, 3] == pytest.approx(0.5)  # in the target's units, as before
+    assert made.calls == [(5, ()), (6, ()), (5, (("fitting__estimator", "sc2"),))]
+    note = got.reproduced
+    assert note["agree"] and note["model_confidence"] == 0.3
+    assert [r["name"] for r in note["repeats"]] == ["next seed", "sc2"]
+    assert all(r["degrees"] == 0.0 and r["shift"] == 0.0 for r in note["repeats"])
+    assert "reproduce" in got.timings and "first" in got.timings
+
+
+@pytest.mark.parametrize(
+    "repeat",
+    [
+        _shifted(AGREE_VOXELS * 0.05 * 1.5),  # 3 voxels away (the stand-in's voxel: 5 cm)
+        _shifted(0.0, AGREE_DEG * 1.5),  # turned 3 deg
+        None,  # the repeat cannot register the pair
+    ],
+)
+def test_a_result_that_a_repeat_does_not_reproduce_keeps_its_confidence(repeat):
+    for order in ([repeat, _shifted(0.0)], [_shifted(0.0), repeat]):  # either repeat
+        made = _Made(0.3, order)
+        got = smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
+        assert got.confidence == 0.3 and not got.passed and not got.reproduced["agree"]
+        assert len(made.calls) == 3
+
+
+def test_a_repeat_within_the_tolerance_agrees():
+    inside = [_shifted(AGREE_VOXELS * 0.05 * 0.9, AGREE_DEG * 0.9), _shifted(0.0)]
+    got = smooth_first(_Made(0.3, inside), _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
+    assert got.reproduced["agree"] and got.passed
+
+
+@pytest.mark.parametrize("fpfh", [REPRODUCE_FLOOR - 0.01, 0.45, 0.9])
+def test_no_repeats_below_the_floor_or_at_the_gate(fpfh):
+    made = _Made(fpfh)
+    got = smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
+    assert len(made.calls) == 1 and got.reproduced is None and got.confidence == fpfh
+
+
+def test_no_repeats_for_a_result_that_ends_with_a_large_residual():
+    made = _Made(0.3, rmse=REPRODUCE_RMSE * 1.1)  # a symmetric shape turned: it reproduces
+    got = smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
+    assert len(made.calls) == 1 and got.reproduced is None and not got.passed
+
+
+def test_the_repeats_seeds_wrap_at_64_bits():
+    made = _Made(0.3)
+    smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), None, seed=2**64 - 1)
+    assert [seed for seed, _ in made.calls] == [2**64 - 1, 0, 2**64 - 1]
+
+
+def test_pose_gap_reads_the_turn_and_the_move_of_a_point():
+    T = _shifted(0.0, 30.0)
+    assert pose_gap(T, T, np.array([1.0, 2.0, 3.0])) == (0.0, 0.0)
+    degrees, shift = pose_gap(T, _shifted(0.0), np.zeros(3))  # turned about the point
+    assert degrees == pytest.approx(30.0) and shift == pytest.approx(0.0, abs=1e-12)
+    degrees, shift = pose_gap(T, _shifted(0.0), np.array([1.0, 0.0, 0.0]))
+    assert shift == pytest.approx(2 * np.sin(np.radians(15.0)))  # a chord of the unit circle
 
 
 def test_when_neither_registers_the_learned_features_error_is_raised():

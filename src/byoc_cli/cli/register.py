@@ -211,13 +211,26 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
     elif result.features_choice and result.features_choice["first"] == "fpfh":
         rough = " and ".join(f"{100 * r:.0f} %" for r in result.features_choice["rough_share"])
         if result.features == "fpfh":
-            line += f" (FPFH features: smooth surfaces, {rough} rough)"
+            line += f" (FPFH features: smooth surfaces, {rough} rough"
+            line += f"{_reproduced(result.reproduced)})"
         else:  # the learned features' second opinion was kept
             first = fallback["first_confidence"] or 0.0
             line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
     if result.init is not None:
         line += f" (global; {_moved(result.init['correction'], unit)} from --init)"
     return line
+
+
+def _reproduced(note: dict | None) -> str:
+    """What the repeats of a smooth pair's FPFH result said, for :func:`summary_line`."""
+    if note is None:
+        return ""
+    if note["agree"]:
+        return (
+            f"; reproduced by {len(note['repeats'])} repeats, confidence "
+            f"{note['model_confidence']:.3f} before"
+        )
+    return f"; not reproduced by its {len(note['repeats'])} repeats"
 
 
 def failure_line(result, min_confidence: float, unit: str | None) -> str:

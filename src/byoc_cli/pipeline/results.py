@@ -93,6 +93,10 @@ class Registration(NamedTuple):
             axis (:mod:`byoc_cli.pipeline.turns`): ``up_axis``, the ``tries`` (each turn's
             ``degrees``, ``confidence`` and ``T_tgt_src``; 0 the first), ``kept_deg`` and
             whether the result is ``ambiguous`` (then it does not pass); None otherwise.
+        reproduced: when a smooth pair's FPFH result below the gate was fitted twice more
+            (:func:`byoc_cli.pipeline.feature_choice.reproduce`): the ``repeats``, whether they
+            ``agree`` (then ``confidence`` is raised) and the ``model_confidence`` before;
+            None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -122,3 +126,4 @@ class Registration(NamedTuple):
     init: dict | None = None
     features_choice: dict | None = None
     turns: dict | None = None
+    reproduced: dict | None = None
