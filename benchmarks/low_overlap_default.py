@@ -141,12 +141,21 @@ def main() -> int:
     parser.add_argument("--byoc", default="byoc", help="the command that runs byoc")
     parser.add_argument("--byoc-args", default="", help="options added to register-batch")
     args = parser.parse_args()
+    from byoc_cli.errors import InputError
+
+    try:
+        bands = _bands(args.bands)
+    except ValueError:
+        parser.error(f"--bands {args.bands}: expected numbers separated by commas")
+    try:
+        pairs = _pairs(args.fragments, args.gt_dir)
+    except InputError as err:
+        parser.error(str(err))
     args.out.mkdir(parents=True, exist_ok=True)
-    pairs = _pairs(args.fragments, args.gt_dir)
     summary = register(pairs, args.out, args.tag, args.byoc, args.byoc_args)
     records = score(pairs, summary)
     (args.out / f"scores-{args.tag}.json").write_text(json.dumps(records, indent=1))
-    print("\n".join(table(records, _bands(args.bands))))
+    print("\n".join(table(records, bands)))
     wrong = [r for r in records if r["passed"] and not r["right"]]
     for r in wrong:
         print(

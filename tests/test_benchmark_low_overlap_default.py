@@ -77,3 +77,20 @@ def test_a_summary_is_scored_per_band_with_its_exit_codes(tmp_path, shared_data)
     expected = 100 * sum(x for x, k in zip(registered, in_rr, strict=True) if k) / sum(in_rr)
     assert cells[2] == f"{expected:.1f} ({sum(in_rr)})"
     assert not (out / "pairs-given.txt").exists()  # a summary there is scored, not run again
+
+
+def test_a_bad_folder_or_band_list_is_one_line_and_exit_2(tmp_path):
+    for extra in (["--fragments", str(tmp_path / "missing")], ["--fragments", str(tmp_path)]):
+        run = subprocess.run(
+            [sys.executable, str(SCRIPT), *extra, "--out", str(tmp_path / "eval")],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+        assert str(tmp_path) in run.stderr.splitlines()[-1]
+    assert not (tmp_path / "eval").exists()  # nothing written
+    run = subprocess.run(
+        [sys.executable, str(SCRIPT), "--fragments", str(tmp_path), "--bands", "0.1,x",
+         "--out", str(tmp_path / "eval")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 2 and "--bands 0.1,x" in run.stderr
