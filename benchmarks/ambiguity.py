@@ -4,8 +4,8 @@ no default changed.
 Usage::
 
     python benchmarks/ambiguity.py --out eval/ [--fragments DEV] [--cache-dir features/] \
-        [--sets dev-low dev-high 3DLoMatch-sample 3DMatch-sample kinect synthetic] \
-        [--limit N] [--no-fallback] [--table-only]
+        [--sets dev-low dev-high 3DLoMatch-sample 3DMatch-sample kinect synthetic cut] \
+        [--cut-dirs CUT ...] [--limit N] [--no-fallback] [--table-only]
 
 Each pair is registered as ``byoc register`` registers it by default (``byoc eval-fmr``'s
 ``byoc`` method: the shipped weights, 5000 points, RANSAC, the multiscale refinement and its
@@ -13,8 +13,10 @@ restarts, the calibrated confidence; below the gate the FPFH second opinion, ref
 way, is kept when more confident), then the cues of ``_ambiguity_cues.py`` are computed on
 the kept result's correspondences and clouds. The sets: ``dev-low`` / ``dev-high`` (the
 development fragments of docs/low-overlap.md, 10-30 % and above 30 %, ``--fragments``), the
-3DMatch sample's 3DLoMatch and 3DMatch pairs, ``kinect`` (tum_fr1_desk_full frames 25 apart)
-and ``synthetic`` (``_ambiguity_synth.py``: a slid pair and a clean one, no features).
+3DMatch sample's 3DLoMatch and 3DMatch pairs, ``kinect`` (tum_fr1_desk_full frames 25 apart),
+``synthetic`` (``_ambiguity_synth.py``: a slid pair and a clean one, no features) and ``cut``
+(the folders of ``cut_pairs.py make`` given to ``--cut-dirs``, scored by ``cut_pairs.py``'s
+criterion: RMSE of the source's points at most 0.2 m and within 5 deg).
 
 A result is right when its official RMSE (``gt.info``) is at most 0.2 m, or, for pairs
 without one (adjacent fragments, Kinect frames, synthetic), within 5 deg and 10 cm. Printed:
@@ -39,13 +41,14 @@ import _ambiguity_cues as cues_mod
 
 ROOT = Path(__file__).resolve().parents[1]
 RGBD = ROOT.parent / "shared" / "data" / "rgbd"
-SETS = ("dev-low", "dev-high", "3DLoMatch-sample", "3DMatch-sample", "kinect", "synthetic")
+SETS = ("dev-low", "dev-high", "3DLoMatch-sample", "3DMatch-sample", "kinect", "synthetic", "cut")
 #: band -> its sets
 BANDS = {
     "low (10-30 %)": ("dev-low", "3DLoMatch-sample"),
     "high (dev, > 30 %)": ("dev-high",),
     "controls": ("3DMatch-sample", "kinect"),
     "synthetic": ("synthetic",),
+    "cut (12-32 %)": ("cut",),
 }
 GATE = 0.45
 RMSE, DEG, METRES = 0.2, 5.0, 0.10
@@ -53,7 +56,7 @@ RMSE, DEG, METRES = 0.2, 5.0, 0.10
 SWEEP = {
     "seq_ratio": (0.3, 0.5, 0.7, 0.9),
     "seq_wratio": (0.3, 0.5, 0.7, 0.9),
-    "seq_far_ratio": (0.3, 0.5, 0.7, 0.9),
+    "seq_far_ratio": (0.3, 0.5, 0.7, 0.9, 1.0, 1.2),
     "ref_ratio": (0.7, 0.8, 0.9, 1.0),
     "ref_overlap_ratio": (0.7, 0.8, 0.9, 1.0),
     "slide_voxels": (3.0, 10.0, 20.0, 40.0),
@@ -204,11 +207,32 @@ class _Runner:
         return out
 
 
-def _pairs(name: str, fragments: Path | None, limit: int | None):
+def _pairs(name: str, fragments: Path | None, limit: int | None, cut_dirs=()):
     """``(name, refs, T_gt, info, seed, overlap)`` of one set's pairs."""
     from byoc_cli.evaluation.cache import file_identity
     from byoc_cli.evaluation.fmr_protocol import pair_seed
     from byoc_cli.io.pointcloud import read_point_cloud
+
+    if name == "cut":
+        import numpy as np
+
+        for folder in cut_dirs:
+            lines = (folder / "pairs.txt").read_text().split("\n")
+            for line in [line for line in lines if line.strip()][:limit]:
+                source, target = (folder / part for part in line.split()[:2])
+                refs = [
+                    (
+                        str(path),
+                        file_identity(path),
+                        lambda path=path: read_point_cloud(path).points,
+                    )
+                    for path in (source, target)
+                ]
+                pair = f"{folder.name}:{source.parent.name}"
+                T_gt = np.loadtxt(source.parent / "T_gt.txt")
+                info = json.loads((source.parent / "info.json").read_text())
+                yield pair, refs, T_gt, None, zlib.crc32(pair.encode()), info["overlap"]
+        return
 
     if name == "kinect":
         from byoc_cli.evaluation.pairs import rgbd_pairs
@@ -259,12 +283,19 @@ def _run(name, args, runner_box) -> list[dict]:
     records = []
     start = time.perf_counter()
     for n, (pair, refs, T_gt, info, seed, overlap) in enumerate(
-        _pairs(name, args.fragments, args.limit), 1
+        _pairs(name, args.fragments, args.limit, args.cut_dirs), 1
     ):
         T, verdict, found, seconds, kind = runner.register(refs, seed)
-        records.append(
-            _record(pair, T, T_gt, info, verdict, found, seconds, features=kind, overlap=overlap)
+        record = _record(
+            pair, T, T_gt, info, verdict, found, seconds, features=kind, overlap=overlap
         )
+        if name == "cut":  # cut_pairs.py's criterion on the source's points
+            from cut_pairs import judged
+
+            source = str(Path(refs[0][0]).resolve())
+            summary = {"source": source, "T_tgt_src": T.tolist(), "passed": record["passed"]}
+            record["right"] = judged(summary, Path("/"))["right"]
+        records.append(record)
         if n % 10 == 0:
             print(f"  {name}: {n} pairs, {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return records
@@ -344,11 +375,14 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--fragments", type=Path, default=None)
     parser.add_argument("--cache-dir", type=Path, default=None)
-    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
+    parser.add_argument("--sets", nargs="+", default=[s for s in SETS if s != "cut"], choices=SETS)
     parser.add_argument("--limit", type=int, default=None, help="first N pairs of each set")
     parser.add_argument("--no-fallback", action="store_true", help="no FPFH second opinion")
     parser.add_argument("--table-only", action="store_true")
+    parser.add_argument("--cut-dirs", type=Path, nargs="+", default=[], help="cut_pairs.py sets")
     args = parser.parse_args()
+    if "cut" in args.sets and not args.table_only and not args.cut_dirs:
+        parser.error("--sets cut needs --cut-dirs (folders of cut_pairs.py make)")
     dev = [s for s in args.sets if s.startswith("dev-")]
     if dev and not args.table_only and (args.fragments is None or not args.fragments.is_dir()):
         parser.error(f"--fragments {args.fragments}: no such folder (the sets {' '.join(dev)})")

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -66,3 +68,26 @@ def test_ambiguity_table_counts_caught_wrong_and_lost_right_results(tmp_path):
     assert "| seq_ratio 0.9 | 0/1, lost 0/1 |" in lines
     assert any(line.strip().startswith("controls WRONG slid") for line in lines)
     assert "synthetic" not in result.stdout  # --table-only ran nothing
+
+
+def test_ambiguity_needs_cut_dirs_for_the_cut_set(tmp_path):
+    result = _ambiguity(tmp_path, "--sets", "cut")
+    assert result.returncode == 2 and "--sets cut needs --cut-dirs" in result.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_ambiguity_scores_cut_pairs_by_their_source_points(tmp_path, shared_data):
+    cut = tmp_path / "cut"
+    made = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "cut_pairs.py"), "make", "--fragments",
+         str(shared_data / "3dmatch" / "sample" / "3DMatch"), "--out", str(cut), "--per-pair", "1"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    result = _ambiguity(tmp_path, "--sets", "cut", "--cut-dirs", str(cut), "--limit", "1")
+    assert result.returncode == 0, result.stderr
+    (record,) = json.loads((tmp_path / "eval" / "ambiguity-cut-limit1.json").read_text())
+    assert record["name"].startswith("cut:7-scenes-redkitchen-4-0-")
+    assert isinstance(record["right"], bool) and record["seq_far_ratio"] >= 0.0
+    assert "| cut (12-32 %) | 1 |" in result.stdout
