@@ -22,7 +22,8 @@ A result is right when its official RMSE (``gt.info``) is at most 0.2 m, or, for
 without one (adjacent fragments, Kinect frames, synthetic), within 5 deg and 10 cm. Printed:
 per band the results that pass the gate (confidence >= 0.45), right and wrong; for each cue and
 threshold the wrong results it catches and the right ones it loses; the passing wrong results
-one by one; the seconds of the cues. Records go to ``--out/ambiguity-<set>.json`` and are
+one by one (with ``truth_inliers``: the correspondences within the inlier threshold under the
+ground truth); the seconds of the cues. Records go to ``--out/ambiguity-<set>.json`` and are
 reused (delete one to run its set again).
 """
 
@@ -69,7 +70,7 @@ EITHER = (
 )
 
 
-def _solve(feats, clouds, config, voxel: float, refine_voxel: float, seed: int):
+def _solve(feats, clouds, config, voxel: float, refine_voxel: float, seed: int, T_gt=None):
     """``estimate_transform``'s matching, fit, refinement and verdict (no scan lines), with
     its correspondences, kept points and prepared clouds for the cues."""
     import torch
@@ -86,10 +87,11 @@ def _solve(feats, clouds, config, voxel: float, refine_voxel: float, seed: int):
     p = ps[corr.src_idx].to(torch.float64)
     q = pt[corr.tgt_idx].to(torch.float64)
     w = corr.weight.detach().to(torch.float64)
-    return _judged((p, q, w), (src.points, tgt.points), clouds, config, voxel, refine_voxel)
+    kept = (src.points, tgt.points)
+    return _judged((p, q, w), kept, clouds, config, voxel, refine_voxel, T_gt)
 
 
-def _judged(correspondences, kept, clouds, config, voxel, refine_voxel):
+def _judged(correspondences, kept, clouds, config, voxel, refine_voxel, T_gt=None):
     import torch
 
     from byoc_cli.pipeline.refine_levels import RefineCloud
@@ -117,6 +119,11 @@ def _judged(correspondences, kept, clouds, config, voxel, refine_voxel):
         (voxel, refine_voxel),
         config.seed,
     )
+    if T_gt is not None:  # how many correspondences the ground truth explains
+        p, q, _ = correspondences
+        T_true = torch.as_tensor(T_gt, dtype=torch.float64)
+        gap = torch.linalg.vector_norm(p @ T_true[:3, :3].T + T_true[:3, 3] - q, dim=1)
+        found["truth_inliers"] = int((gap < solver.threshold).sum())
     return refinement.T_tgt_src, verdict, found, seconds
 
 
@@ -185,7 +192,7 @@ class _Runner:
         self.points = points
         return tuple(points[key] for key, _, _ in refs)
 
-    def register(self, refs, seed: int):
+    def register(self, refs, seed: int, T_gt=None):
         """``(T, verdict, cues, seconds, features)`` of the kept result of one pair; ``refs``:
         ``(key, identity, load)`` of source and target."""
         clouds = self._clouds(refs)
@@ -197,7 +204,7 @@ class _Runner:
                 for (_, identity, _), c in zip(refs, clouds, strict=True)
             )
             voxel = method.features.voxel_size
-            T, verdict, found, seconds = _solve(feats, clouds, config, voxel, voxel, seed)
+            T, verdict, found, seconds = _solve(feats, clouds, config, voxel, voxel, seed, T_gt)
             if out is not None:
                 seconds += out[3]
             if out is None or verdict.confidence > out[1].confidence:
@@ -266,7 +273,7 @@ def _synthetic() -> list[dict]:
         kept = (pair.kept_source, pair.kept_target)
         clouds = (pair.source, pair.target)
         T, verdict, found, seconds = _judged(
-            pair.correspondences, kept, clouds, config, VOXEL, VOXEL
+            pair.correspondences, kept, clouds, config, VOXEL, VOXEL, pair.T_gt
         )
         records.append(
             _record(pair.name, T, pair.T_gt, None, verdict, found, seconds, features="none")
@@ -285,7 +292,7 @@ def _run(name, args, runner_box) -> list[dict]:
     for n, (pair, refs, T_gt, info, seed, overlap) in enumerate(
         _pairs(name, args.fragments, args.limit, args.cut_dirs), 1
     ):
-        T, verdict, found, seconds, kind = runner.register(refs, seed)
+        T, verdict, found, seconds, kind = runner.register(refs, seed, T_gt)
         record = _record(
             pair, T, T_gt, info, verdict, found, seconds, features=kind, overlap=overlap
         )
@@ -350,11 +357,12 @@ def table(by_set: dict[str, list[dict]]) -> None:
         print(f"| {label} | " + " | ".join(cells) + " |")
     print("\nPassing results (wrong first), cues:")
     shown = ("seq_ratio", "seq_voxels", "seq_far_ratio", "seq_far_voxels", "ref_ratio",
-             "ref_overlap_ratio", "ref_voxels", "slide_voxels", "restart_gain")  # fmt: skip
+             "ref_overlap_ratio", "ref_voxels", "slide_voxels", "restart_gain",
+             "truth_inliers")  # fmt: skip
     for band, records in bands:
         passed = sorted((r for r in records if r["passed"]), key=lambda r: (r["right"], r["name"]))
         for r in passed:
-            values = " ".join(f"{c}={r[c]:.2f}" for c in shown)
+            values = " ".join(f"{c}={r.get(c, float('nan')):.2f}" for c in shown)
             print(
                 f"  {band[:8]:8s} {'right' if r['right'] else 'WRONG'} {r['name']:36s} "
                 f"{r['features']:5s} conf {r['confidence']:.2f} "
