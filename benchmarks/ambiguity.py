@@ -121,8 +121,7 @@ def _judged(correspondences, kept, clouds, config, voxel, refine_voxel, T_gt=Non
     )
     if T_gt is not None:  # how many correspondences the ground truth explains
         p, q, _ = correspondences
-        T_true = torch.as_tensor(T_gt, dtype=torch.float64)
-        gap = torch.linalg.vector_norm(p @ T_true[:3, :3].T + T_true[:3, 3] - q, dim=1)
+        gap = cues_mod._residual(torch.as_tensor(T_gt, dtype=torch.float64), p, q)
         found["truth_inliers"] = int((gap < solver.threshold).sum())
     return refinement.T_tgt_src, verdict, found, seconds
 

@@ -41,6 +41,7 @@ def test_cuts_reach_the_band_and_a_summary_is_scored(tmp_path, shared_data):
     listed = (out / "pairs.txt").read_text().split("\n")[:-1]
     assert len(listed) == 6 and (out / "out").is_dir()  # 3 pairs of the sample, 2 cuts each
     folders = [out / line.split()[0].split("/")[0] for line in listed]
+    whole = load_cloud(fragments / "7-scenes-redkitchen" / "cloud_bin_0.ply", scale=1.0)
     for folder in folders:
         info = json.loads((folder / "info.json").read_text())
         assert 0.07 <= info["overlap"] <= 0.33
@@ -49,7 +50,6 @@ def test_cuts_reach_the_band_and_a_summary_is_scored(tmp_path, shared_data):
         T_gt = np.loadtxt(folder / "T_gt.txt")
         moved = source @ T_gt[:3, :3].T + T_gt[:3, 3]
         assert overlap_of(moved, target) == pytest.approx(info["overlap"])
-        whole = load_cloud(fragments / "7-scenes-redkitchen" / "cloud_bin_0.ply", scale=1.0)
         if info["target_fragment"] == 0:
             assert len(target) < 0.8 * len(whole)  # cut, not the whole fragment
     # right, slid 1 m, turned 90 deg (all with exit 0), right but refused, refused with no T

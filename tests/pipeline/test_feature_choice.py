@@ -21,9 +21,9 @@ from byoc_cli.pipeline.feature_choice import (
     SMOOTH_SHARE,
     applies,
     choose_features,
-    pose_gap,
     smooth_first,
 )
+from byoc_cli.pipeline.local import correction
 from byoc_cli.pipeline.results import Registration
 from tests._smooth import smooth_scan
 
@@ -196,12 +196,12 @@ def test_the_repeats_seeds_wrap_at_64_bits():
     assert [seed for seed, _ in made.calls] == [2**64 - 1, 0, 2**64 - 1]
 
 
-def test_pose_gap_reads_the_turn_and_the_move_of_a_point():
+def test_the_repeats_gap_reads_the_turn_and_the_move_of_a_point():  # local.correction
     T = _shifted(0.0, 30.0)
-    assert pose_gap(T, T, np.array([1.0, 2.0, 3.0])) == (0.0, 0.0)
-    degrees, shift = pose_gap(T, _shifted(0.0), np.zeros(3))  # turned about the point
+    assert correction(T, T, np.array([1.0, 2.0, 3.0])) == (0.0, 0.0)
+    degrees, shift = correction(T, _shifted(0.0), np.zeros(3))  # turned about the point
     assert degrees == pytest.approx(30.0) and shift == pytest.approx(0.0, abs=1e-12)
-    degrees, shift = pose_gap(T, _shifted(0.0), np.array([1.0, 0.0, 0.0]))
+    degrees, shift = correction(T, _shifted(0.0), np.array([1.0, 0.0, 0.0]))
     assert shift == pytest.approx(2 * np.sin(np.radians(15.0)))  # a chord of the unit circle
 
 

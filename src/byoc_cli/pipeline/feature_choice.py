@@ -36,6 +36,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from byoc_cli.errors import RegistrationError
+from byoc_cli.pipeline.local import correction
 from byoc_cli.pipeline.results import Registration
 
 #: a pair whose clouds both have at most this share of rough neighbourhoods at its voxel
@@ -202,15 +203,6 @@ def _worth_repeating(first: Registration, gate: float) -> bool:
     return REPRODUCE_FLOOR <= first.confidence < gate and rmse <= REPRODUCE_RMSE
 
 
-def pose_gap(T_a: np.ndarray, T_b: np.ndarray, point: np.ndarray) -> tuple[float, float]:
-    """How far apart two poses ``(4, 4)`` put ``point (3,)``: the angle between their
-    rotations in degrees, and the distance between ``T_a point`` and ``T_b point``."""
-    cos = (np.trace(T_a[:3, :3] @ T_b[:3, :3].T) - 1.0) / 2.0
-    degrees = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-    shift = (T_a[:3, :3] - T_b[:3, :3]) @ point + T_a[:3, 3] - T_b[:3, 3]
-    return degrees, float(np.linalg.norm(shift))
-
-
 def reproduce(
     first: Registration,
     fit: Callable[[int, tuple], Registration],
@@ -253,7 +245,7 @@ def reproduce(
             repeats.append({"name": name, "degrees": None, "shift": None, "confidence": None})
             agree = False
             continue
-        degrees, shift = pose_gap(T_first, again.T_tgt_src, centroid)
+        degrees, shift = correction(again.T_tgt_src, T_first, centroid)
         repeats.append(
             {"name": name, "degrees": degrees, "shift": shift, "confidence": again.confidence}
         )
