@@ -55,6 +55,9 @@ MAX_MATCH_POINTS = 30_000_000
 MAX_RANSAC_ITERATIONS = 10_000_000
 MAX_NUM_SUBSETS = 10_000
 MAX_SUBSET_SIZE = 1_000
+#: The most retries of a pair below the gate (``gate.retries``; each one costs about a
+#: matching, a fit and a refinement).
+MAX_RETRIES = 16
 #: The largest inlier threshold, as a multiple of the voxel.
 MAX_INLIER_FACTOR = 100.0
 

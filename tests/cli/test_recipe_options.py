@@ -35,6 +35,7 @@ FLAGS = {
     "num_correspondences": "--num-correspondences",
     "min_confidence": "--min-confidence",
     "fallback": "--fallback",
+    "retries": "--retries",
     "turns": "--turns",
     "seed": "--seed",
 }
@@ -203,6 +204,9 @@ def test_options_given_change_the_recipe_file(tmp_path):
     assert got.fitting.estimator == PRESETS["fpfh"].fitting.estimator
     assert got.refinement.method == "none"
     assert got.gate.fallback == "none"  # the fallback is for learned features
+    assert got.gate.retries == 0  # the fpfh preset's
+    options = {"recipe_path": path, "retries": 3}
+    assert build_recipe(options).gate.retries == 3
 
 
 # ------------------------------------------------------------------ hostile recipe files
@@ -269,7 +273,7 @@ def test_a_hostile_recipe_is_one_line_naming_the_key_in_bounded_memory(case, tmp
 
 
 def test_counts_past_the_recipes_range_are_usage_errors_naming_the_option(tmp_path):
-    for flag in ("--max-points", "--num-correspondences"):
+    for flag in ("--max-points", "--num-correspondences", "--retries"):
         result = CliRunner().invoke(cli, ["register", "a.ply", "b.ply", flag, str(2**63 - 1)])
         assert result.exit_code == 2, result.output
         assert f"'{flag}'" in result.stderr and "Traceback" not in result.output

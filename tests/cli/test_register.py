@@ -683,7 +683,7 @@ def test_the_summary_line_says_whether_the_repeats_reproduced_a_smooth_result(ag
         path="global", confidence=0.74 if agree else 0.3, num_inliers=45,
         num_correspondences=2000, inlier_threshold=0.01, voxel_size=0.005, fallback=None,
         features="fpfh", features_choice={"first": "fpfh", "rough_share": [0.0, 0.01]},
-        reproduced=note, init=None,
+        reproduced=note, init=None, retries=None,
     )  # fmt: skip
     line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
     assert line.endswith("rough; reproduced by 2 repeats, confidence 0.300 before)") == agree
@@ -691,6 +691,24 @@ def test_the_summary_line_says_whether_the_repeats_reproduced_a_smooth_result(ag
     result.reproduced = None  # no repeats ran
     line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
     assert line.endswith("(FPFH features: smooth surfaces, 0 % and 1 % rough)")
+
+
+def test_the_summary_line_says_when_a_retry_was_kept():
+    from types import SimpleNamespace
+
+    from byoc_cli.cli.register import summary_line
+
+    result = SimpleNamespace(
+        path="global", confidence=0.84, num_inliers=45, num_correspondences=5000,
+        inlier_threshold=0.05, voxel_size=0.025, fallback=None, features="byoc",
+        features_choice=None, reproduced=None, init=None,
+        retries={"first_confidence": 0.12, "tries": [{}], "kept_seed": 1},
+    )  # fmt: skip
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    assert line.endswith("(retry with seed 1: the first try reached confidence 0.120)")
+    result.retries["kept_seed"] = None  # the retries ran, the first result was kept
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    assert line.endswith("voxel 0.025 m, 1.0 s")
 
 
 def test_init_dash_reads_the_pose_from_stdin(runner, tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from byoc_cli.pipeline.recipe import preset
 from byoc_cli.pipeline.registrar import Registrar
 from tests.pipeline._clouds import cube, moved
 
@@ -67,10 +68,11 @@ def test_only_clouds_sampled_along_lines_ask_the_fit_for_a_second_try(monkeypatc
 
     monkeypatch.setattr(register_module, "estimate_transform", spy)
     rings, camera = ring_scan(), camera_scan()
-    registrar = Registrar(fallback=None)
+    once = preset("byoc").changed(gate__retries=0)  # one fit a pair, whatever its confidence
+    registrar = Registrar(fallback=None, recipe=once)
     for cloud in (rings, camera):
         registrar.register(cloud, moved(cloud)[0])
     with pytest.warns(UserWarning, match="differs from the 0.025 m"):
-        explicit = Registrar(fallback=None, voxel_size=0.5)
+        explicit = Registrar(fallback=None, voxel_size=0.5, recipe=once)
     explicit.register(rings, moved(rings)[0])
     assert seen == [True, False, False]  # an explicit voxel: no auto measure, no flag

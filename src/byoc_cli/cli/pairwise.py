@@ -298,6 +298,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "features_choice": result.features_choice,
         "turns": result.turns,
         "reproduced": result.reproduced,
+        "retries": result.retries,
         "scale": run["scale"],
         "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
         "source_scale": run["factors"][0],

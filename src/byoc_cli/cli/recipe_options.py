@@ -117,6 +117,16 @@ def _options() -> dict[str, Callable]:
             "confident result; the report says which ran (docs/confidence.md). none: never. "
             f"{_default('gate.fallback')}",
         ),
+        "retries": int_option(
+            "--retries",
+            min=0,
+            max=_high("gate.retries"),
+            default=None,
+            help="When the confidence is below --min-confidence, match and fit the same "
+            "features again with up to this many next seeds, and keep the first try that "
+            "reaches 0.7 (before the FPFH fallback; docs/low-overlap.md). 0: never. "
+            f"{_default('gate.retries')}",
+        ),
         "turns": click.option(
             "--turns/--no-turns",
             default=None,
@@ -161,6 +171,7 @@ FIELDS = {
     "num_correspondences": "matching.correspondences",
     "min_confidence": "gate.min_confidence",
     "fallback": "gate.fallback",
+    "retries": "gate.retries",
     "turns": "matching.turns",
     "seed": "seed",
 }
@@ -185,6 +196,7 @@ PAIRWISE = (
     "num_correspondences",
     "min_confidence",
     "fallback",
+    "retries",
     "turns",
     "seed",
 )

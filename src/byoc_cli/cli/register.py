@@ -216,6 +216,12 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
         else:  # the learned features' second opinion was kept
             first = fallback["first_confidence"] or 0.0
             line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
+    retried = result.retries
+    if retried and retried["kept_seed"] is not None:
+        line += (
+            f" (retry with seed {retried['kept_seed']}: the first try reached confidence "
+            f"{retried['first_confidence']:.3f})"
+        )
     if result.init is not None:
         line += f" (global; {_moved(result.init['correction'], unit)} from --init)"
     return line

@@ -55,7 +55,8 @@ class Fallback:
     ) -> Registration:
         """``first`` (a registration by ``learned``, below its gate) or, when more confident,
         the FPFH registration of the same clouds (``src.cloud``, ``tgt.cloud``); the kept
-        result's ``fallback`` and ``timings["fallback"]`` say what ran. Without both clouds:
+        result's ``fallback`` and ``timings["fallback"]`` say what ran (and its ``retries``
+        what ``first``'s did). Without both clouds:
         ``first`` as it is."""
         if src.cloud is None or tgt.cloud is None:
             return first
@@ -84,7 +85,7 @@ class Fallback:
             return first._replace(timings=timings, fallback=note)
         T = second.T_tgt_src.copy()
         T[:3, 3] /= src.scale
-        return second._replace(T_tgt_src=T, timings=timings, fallback=note)
+        return second._replace(T_tgt_src=T, timings=timings, fallback=note, retries=first.retries)
 
     def register(
         self,

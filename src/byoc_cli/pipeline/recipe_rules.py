@@ -122,6 +122,7 @@ RULES: dict[str, FieldRule] = {
     "refinement.restarts": FieldRule("bool"),
     "gate.min_confidence": FieldRule("number", 0, 1),
     "gate.fallback": FieldRule("choice", words=FALLBACKS),
+    "gate.retries": FieldRule("int", 0, limits.MAX_RETRIES),
     "seed": FieldRule("int", 0, 2**64 - 1),
 }
 

@@ -97,6 +97,10 @@ class Registration(NamedTuple):
             (:func:`byoc_cli.pipeline.feature_choice.reproduce`): the ``repeats``, whether they
             ``agree`` (then ``confidence`` is raised) and the ``model_confidence`` before;
             None otherwise.
+        retries: when the first result was below the gate and the matching ran again with
+            the next seeds (:func:`byoc_cli.pipeline.retries.with_retries`): the
+            ``first_confidence``, the ``tries`` (``seed``, ``confidence``), the ``kept_seed``
+            (None: the first result) and the ``seconds``; None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -127,3 +131,4 @@ class Registration(NamedTuple):
     features_choice: dict | None = None
     turns: dict | None = None
     reproduced: dict | None = None
+    retries: dict | None = None

@@ -1,0 +1,80 @@
+"""Tries of the matching under the next seeds when the first result is below the gate.
+
+At low overlap the learned features' correspondences hold a few inliers in a thousand, and
+whether the robust fit finds the one right pose among them depends on the seeded subset of
+points that enters matching and on RANSAC's draws: on the 96 cut pairs of
+``benchmarks/cut_pairs.py`` (10-30 % overlap, docs/low-overlap.md), seeds 0, 1 and 2 each
+register 50-51 % of the pairs, and at least one of the three 62.5 %. So when the first
+result is below the gate, the matching, the fit and the refinement run again (the features
+are not extracted again) with the seeds after the recipe's, up to ``gate.retries`` times.
+
+A result picked among several tries is wrong more often at a given confidence than a first
+result (the confidence model was calibrated on first results): on the same pairs, keeping a
+retry from the gate (0.45) on passed 16 wrong results against the first tries' 10. A retry
+replaces the first result only when it reaches :data:`RETRY_SURE`; below it the first result
+goes on (to the FPFH fallback) as it would without retries.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from byoc_cli.pipeline.results import Registration
+
+#: a retry replaces the first result when its confidence is at least this (or the gate, when
+#: the gate is higher); the tries stop at the first one that does
+RETRY_SURE = 0.7
+
+
+def retry_seed(seed: int, k: int) -> int:
+    """The seed of the ``k``-th retry (``k >= 1``) of a run seeded ``seed``: the next ones,
+    wrapping at 2**64 (the range of a recipe's seed)."""
+    return (seed + k) % 2**64
+
+
+def with_retries(
+    first: Registration, again: Callable[[int], Registration], seed: int, retries: int, gate: float
+) -> Registration:
+    """``first`` or the first retry that reaches :data:`RETRY_SURE` (and ``gate``).
+
+    Args:
+        first: the first result of the pair, with the run's ``seed``.
+        again: the same registration of the same features with another seed.
+        seed: the run's seed; the ``k``-th retry runs with :func:`retry_seed` ``(seed, k)``.
+        retries: most retries (0: none).
+        gate: the run's ``gate.min_confidence``; a first result at or above it is not retried.
+
+    Returns:
+        The kept result; when retries ran, its ``retries`` holds the ``first_confidence``,
+        the ``tries`` (each retry's ``seed`` and ``confidence``), ``kept_seed`` (None: the
+        first result was kept) and ``seconds``, and its ``timings["retries"]`` the seconds
+        of the retries. A kept retry carries the first result's recipe and seed (the run
+        that made it).
+    """
+    if retries < 1 or first.confidence >= gate:
+        return first
+    sure = max(RETRY_SURE, gate)
+    start = time.perf_counter()
+    tries, kept = [], None
+    for k in range(1, retries + 1):
+        other = again(retry_seed(seed, k))
+        tries.append({"seed": other.seed, "confidence": other.confidence})
+        if other.confidence >= sure:
+            kept = other
+            break
+    seconds = time.perf_counter() - start
+    note = {
+        "first_confidence": first.confidence,
+        "tries": tries,
+        "kept_seed": None if kept is None else kept.seed,
+        "seconds": seconds,
+    }
+    if kept is None:
+        return first._replace(timings={**first.timings, "retries": seconds}, retries=note)
+    return kept._replace(
+        timings={**kept.timings, "retries": seconds},
+        retries=note,
+        recipe=first.recipe,
+        seed=first.seed,
+    )
