@@ -11,7 +11,7 @@ import pytest
 from byoc_cli.pipeline.recipe import preset
 from byoc_cli.pipeline.registrar import Registrar
 from byoc_cli.pipeline.results import Registration
-from byoc_cli.pipeline.retries import RETRY_SURE, retry_seed, with_retries
+from byoc_cli.pipeline.retries import RETRY_SURE, at_own_voxel, retry_seed, with_retries
 from tests.pipeline._clouds import cube, moved
 
 GATE = 0.45
@@ -136,9 +136,9 @@ def test_clouds_brought_to_the_features_scale_are_not_retried(monkeypatch):
     scaled = _features(2.1 * registrar.voxel_size)  # a room scanned by a TLS, say
     got = registrar.match(scaled, scaled, seed=3)
     assert seen == [3, ("fallback", 0.1, 3)] and got.retries is None
-    assert registrar.at_own_voxel(_features(registrar.voxel_size))
+    assert at_own_voxel(registrar, _features(registrar.voxel_size))
     given = Registrar(fallback="fpfh", voxel_size=0.05)  # a voxel given: always its own
-    assert given.at_own_voxel(_features(0.05))
+    assert at_own_voxel(given, _features(0.05))
 
 
 def test_the_presets_retry_the_learned_features_only():

@@ -18,7 +18,6 @@ thread count) with one torch thread each (:func:`byoc_cli.threads.worker_pool`);
 
 from __future__ import annotations
 
-import math
 import os
 import threading
 from typing import TYPE_CHECKING, Any
@@ -29,7 +28,7 @@ from byoc_cli.pipeline.featurizer import Featurizer
 from byoc_cli.pipeline.memo import RefineClouds
 from byoc_cli.pipeline.pair import match_pair, same_voxel, scan_lines
 from byoc_cli.pipeline.results import Features, Registration
-from byoc_cli.pipeline.retries import with_retries
+from byoc_cli.pipeline.retries import retried
 from byoc_cli.pipeline.sequence import register_either
 from byoc_cli.pipeline.turns import with_turns
 from byoc_cli.threads import in_worker, side_by_side
@@ -153,10 +152,8 @@ class Registrar(Featurizer):
         seed: int | None = None,
         turned: Any = None,
     ) -> Registration:
-        """Register two featured clouds: correspondences, the robust fit, the refinement, the
-        judgement (:func:`~byoc_cli.pipeline.pair.match_pair`), below the gate the retries
-        with the next seeds (:func:`~byoc_cli.pipeline.retries.with_retries`), the source
-        turned (:func:`~byoc_cli.pipeline.turns.with_turns`) and the fallback's second opinion.
+        """Register two featured clouds: :func:`~byoc_cli.pipeline.pair.match_pair`, then the
+        :mod:`~byoc_cli.pipeline.retries`, :mod:`~byoc_cli.pipeline.turns` and fallback.
 
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale; with an
@@ -174,32 +171,17 @@ class Registrar(Featurizer):
         """
         settings = {"estimator": estimator, "refine": refine, "max_points": max_points}
         settings.update(num_correspondences=num_correspondences, seed=seed)
-        registration = self.match_alone(src, tgt, **settings)
         recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
-
-        def again(other_seed: int) -> Registration:
-            return self.match_alone(src, tgt, **{**settings, "seed": other_seed})
-
-        gate = recipe.gate
-        retries = gate.retries if self.at_own_voxel(src) else 0
-        registration = with_retries(registration, again, recipe.seed, retries, gate.min_confidence)
+        registration = retried(self, self.match_alone(src, tgt, **settings), src, tgt, recipe)
         first = registration.confidence  # the fallback answers to the first learned result
         registration, done = with_turns(self, registration, (src, tgt), turned, settings)
         if done:
             return registration
         if not self.fallback or first >= self.fallback_below:
             return registration
-        # the recipe of the run (its gate ran the fallback), whichever result is kept
         kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
         passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
         return kept._replace(recipe=registration.recipe, passed=passed)
-
-    def at_own_voxel(self, feats: Features) -> bool:
-        """Whether ``feats`` were extracted at the features' own voxel: a voxel given, or an
-        auto voxel that did not scale the clouds (the retries below the gate run only there:
-        on the 14 simulated TLS rooms of docs/rooms.md, most brought to the features' scale
-        by factors of 1.8 to 2.5, they changed no count and cost 42 % more CPU)."""
-        return not self.auto_voxel or math.isclose(feats.voxel_size, self.voxel_size)
 
     def match_alone(self, src: Features, tgt: Features, **settings: Any) -> Registration:
         """:meth:`match` without the fallback's second opinion, whatever the confidence (for a
