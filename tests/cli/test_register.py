@@ -706,7 +706,10 @@ def test_the_summary_line_says_when_a_retry_was_kept():
     )  # fmt: skip
     line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
     assert line.endswith("(retry with seed 1: the first try reached confidence 0.120)")
-    result.retries["kept_seed"] = None  # the retries ran, the first result was kept
+    result.fallback = {"used": True, "features": "fpfh", "learned_confidence": 0.3}
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")  # FPFH's was kept
+    assert line.endswith("(FPFH features: the learned ones reached confidence 0.300)")
+    result.fallback, result.retries["kept_seed"] = None, None  # the first result was kept
     line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
     assert line.endswith("voxel 0.025 m, 1.0 s")
 

@@ -123,8 +123,9 @@ def _options() -> dict[str, Callable]:
             max=_high("gate.retries"),
             default=None,
             help="When the confidence is below --min-confidence, match and fit the same "
-            "features again with up to this many next seeds, and keep the first try that "
-            "reaches 0.7 (before the FPFH fallback; docs/low-overlap.md). 0: never. "
+            "features again with up to this many next seeds, each retry's confidence "
+            "discounted for the tries it was picked from, and keep the most confident (before "
+            "the FPFH fallback; docs/low-overlap.md). 0: never. "
             f"{_default('gate.retries')}",
         ),
         "turns": click.option(

@@ -217,7 +217,7 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
             first = fallback["first_confidence"] or 0.0
             line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
     retried = result.retries
-    if retried and retried["kept_seed"] is not None:
+    if retried and retried["kept_seed"] is not None and not (fallback and fallback["used"]):
         line += (
             f" (retry with seed {retried['kept_seed']}: the first try reached confidence "
             f"{retried['first_confidence']:.3f})"

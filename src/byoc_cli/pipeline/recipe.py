@@ -162,8 +162,9 @@ class GateRecipe:
         fallback: ``"fpfh"``: below the gate, register the pair again with FPFH features and
             keep the more confident result (byoc features only); ``"none"``: never.
         retries: below the gate, match, fit and refine the same features again with up to
-            this many next seeds, and keep the first retry that reaches 0.7
-            (:mod:`byoc_cli.pipeline.retries`); before the fallback. 0: never.
+            this many next seeds, each retry's confidence discounted for the tries it was
+            picked from, and keep the most confident (:mod:`byoc_cli.pipeline.retries`);
+            before the fallback. 0: never.
     """
 
     min_confidence: float = DEFAULT_MIN_CONFIDENCE
@@ -238,7 +239,7 @@ PRESETS: dict[str, RegistrationRecipe] = {
     # (benchmarks/estimators.py): randomized Procrustes registered a fifth of the development
     # fragments that RANSAC did with the same features; plain ICP slid along the planes of
     # tum_fr3_cabinet. Below the gate, two more seeds (the cut pairs of docs/low-overlap.md:
-    # RR 51.0 % -> 58.3 %), then FPFH gives a second opinion (docs/confidence.md).
+    # RR 51.0 % -> 60.4 %), then FPFH gives a second opinion (docs/confidence.md).
     "byoc": RegistrationRecipe(
         FeaturesRecipe("byoc"),
         MatchingRecipe(max_points=5000, correspondences=2500),
