@@ -55,9 +55,8 @@ class Fallback:
     ) -> Registration:
         """``first`` (a registration by ``learned``, below its gate) or, when more confident,
         the FPFH registration of the same clouds (``src.cloud``, ``tgt.cloud``); the kept
-        result's ``fallback`` and ``timings["fallback"]`` say what ran (and its ``retries``
-        what ``first``'s did). Without both clouds:
-        ``first`` as it is."""
+        result's ``fallback`` and ``timings["fallback"]`` say what ran, and its ``retries``
+        what ``first``'s did. Without both clouds: ``first`` as it is."""
         if src.cloud is None or tgt.cloud is None:
             return first
         start = time.perf_counter()

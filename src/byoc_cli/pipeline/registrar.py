@@ -172,7 +172,8 @@ class Registrar(Featurizer):
         settings = {"estimator": estimator, "refine": refine, "max_points": max_points}
         settings.update(num_correspondences=num_correspondences, seed=seed)
         recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
-        registration = retried(self, self.match_alone(src, tgt, **settings), src, tgt, recipe)
+        registration = self.match_alone(src, tgt, **settings)
+        registration = retried(self, registration, (src, tgt), settings, recipe)
         first = registration.confidence  # the fallback answers to the first learned result
         registration, done = with_turns(self, registration, (src, tgt), turned, settings)
         if done:

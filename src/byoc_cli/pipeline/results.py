@@ -99,8 +99,9 @@ class Registration(NamedTuple):
             None otherwise.
         retries: when the first result was below the gate and the matching ran again with
             the next seeds (:func:`byoc_cli.pipeline.retries.with_retries`): the
-            ``first_confidence``, the ``tries`` (``seed``, ``confidence``), the ``kept_seed``
-            (None: the first result) and the ``seconds``; None otherwise.
+            ``first_confidence``, the ``tries`` (``seed``, discounted ``confidence``,
+            ``model_confidence``), the ``kept_seed`` (None: the first result) and the
+            ``seconds``; None otherwise.
     """
 
     T_tgt_src: np.ndarray

@@ -104,25 +104,16 @@ def at_own_voxel(made: Any, feats: Features) -> bool:
     return not made.auto_voxel or math.isclose(feats.voxel_size, made.voxel_size)
 
 
-def retried(made: Any, first: Registration, src: Features, tgt: Features, recipe: Any):
-    """:func:`with_retries` of ``first``, the result of ``made.match_alone`` on ``src`` and
-    ``tgt`` under the run's ``recipe`` (each retry: the same recipe with another seed); no
-    retries where :func:`at_own_voxel` is false."""
+def retried(made: Any, first: Registration, pair: tuple, settings: dict, recipe: Any):
+    """:func:`with_retries` of ``first``, the result of ``made.match_alone`` on ``pair``
+    (source and target :class:`Features`) with ``settings`` (its keywords), whose recipe is
+    ``recipe``; each retry changes only the seed. No retries where :func:`at_own_voxel` is
+    false."""
+    src, tgt = pair
 
     def again(seed: int) -> Registration:
-        return made.match_alone(src, tgt, **_settings(recipe, seed))
+        return made.match_alone(src, tgt, **{**settings, "seed": seed})
 
     gate = recipe.gate
     retries = gate.retries if at_own_voxel(made, src) else 0
     return with_retries(first, again, recipe.seed, retries, gate.min_confidence)
-
-
-def _settings(recipe: Any, seed: int) -> dict:
-    """The keywords of ``Registrar.match_alone`` that run ``recipe`` with ``seed``."""
-    return {
-        "estimator": recipe.fitting.estimator,
-        "refine": recipe.refinement.method,
-        "max_points": recipe.matching.max_points,
-        "num_correspondences": recipe.matching.correspondences,
-        "seed": seed,
-    }
