@@ -1,5 +1,6 @@
 """What `register` and `register-batch` say of an ambiguous result (`--turns`: another turned
-try fits about as well elsewhere): one line naming it, and a rerun counts it below the gate."""
+try fits about as well elsewhere; the check with another seed ends elsewhere): one line
+naming it, and a rerun counts it below the gate."""
 
 from __future__ import annotations
 
@@ -20,9 +21,22 @@ TURNS = {
     "ambiguous": True,
 }
 
+CHECK = {
+    "seed": 1,
+    "model_confidence": 0.41,
+    "apart": {"rotation_deg": 14.6, "translation": 1.14, "voxels": 45.6},
+    "agrees": False,
+    "ambiguous": True,
+    "alternatives": [
+        {"seed": 0, "confidence": 0.495, "T_tgt_src": None},
+        {"seed": 1, "confidence": 0.261, "T_tgt_src": None},
+    ],
+    "kept_seed": 0,
+}
+
 
 def test_register_says_ambiguous_with_the_rivals_confidences():
-    result = SimpleNamespace(turns=TURNS, init=None, path="global", confidence=0.91)
+    result = SimpleNamespace(turns=TURNS, init=None, path="global", confidence=0.91, check=None)
     line = failure_line(result, 0.45, "m")
     assert line.startswith("byoc: ambiguous: the source fits at more than one pose")
     assert "0.910 turned 120 deg, 0.880 turned 240 deg" in line and "\n" not in line
@@ -30,6 +44,7 @@ def test_register_says_ambiguous_with_the_rivals_confidences():
 
 def test_a_result_that_is_not_ambiguous_is_below_the_gate_as_before():
     result = SimpleNamespace(turns={**TURNS, "ambiguous": False}, init=None, path="global")
+    result.check = {**CHECK, "ambiguous": False, "alternatives": []}
     result.confidence = 0.3
     assert "below --min-confidence 0.45" in failure_line(result, 0.45, "m")
 
@@ -41,3 +56,62 @@ def test_batch_names_why_and_a_rerun_counts_it_below_the_gate(tmp_path):
     summary.write_text(json.dumps(record) + "\n")
     (earlier,) = recorded_results(summary).values()
     assert recorded_below(earlier, 0.45)  # its confidence alone would pass
+
+
+def test_register_and_batch_say_where_the_two_seeds_put_the_source(tmp_path):
+    result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.495, check=CHECK)
+    line = failure_line(result, 0.45, "m")
+    assert line == (
+        "byoc: ambiguous: seeds 0 and 1 fit the source 14.6 deg / 1.14 m apart (confidences "
+        "0.495 and 0.261): T is likely wrong (written all the same)"
+    )
+    far = {**CHECK, "apart": {**CHECK["apart"], "translation": 22.8}}
+    unknown_unit = SimpleNamespace(**{**vars(result), "check": far})
+    assert "14.6 deg / 22.8 input units apart" in failure_line(unknown_unit, 0.45, None)
+    record = {"status": "low_confidence", "confidence": 0.495, "check": CHECK, "unit": "m"}
+    record["output"] = "a.txt"
+    assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
+    summary = tmp_path / "summary.jsonl"
+    summary.write_text(json.dumps(record) + "\n")
+    (earlier,) = recorded_results(summary).values()
+    assert recorded_below(earlier, 0.45)  # its confidence alone would pass
+
+
+def test_register_exits_3_with_both_poses_when_the_check_lands_elsewhere(tmp_path, monkeypatch):
+    """`byoc register` end to end with the matching stood in: the first try passes at 0.8
+    with an overlap of 0.3, the check (seed 1) ends 1.5 m away at 0.6."""
+    import numpy as np
+    from click.testing import CliRunner
+
+    from byoc_cli.cli.main import cli
+    from byoc_cli.pipeline.registrar import Registrar
+    from byoc_cli.pipeline.results import Registration
+    from tests.pipeline._clouds import cube, moved
+
+    def match_alone(self, src, tgt, **kw):
+        seed = kw["seed"] or 0  # None: the recipe's, 0
+        T = np.eye(4)
+        T[0, 3] = 1.5 * seed
+        confidence = 0.8 if seed == 0 else 0.6
+        return Registration(
+            T, confidence, True, 10, 20, 0.5, 0.3, 100, 100, 0.05, 0.025, "byoc", "ransac",
+            "multiscale", 1000, 100, seed, None, {"fit": 0.1},
+        )  # fmt: skip
+
+    monkeypatch.setattr(Registrar, "match_alone", match_alone)
+    np.save(tmp_path / "a.npy", cube(1))
+    np.save(tmp_path / "b.npy", moved(cube(1))[0])
+    args = ["register", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "--voxel-size", "0.025"]
+    args += ["-o", str(tmp_path / "T.txt"), "--json", str(tmp_path / "r.json")]
+    run = CliRunner().invoke(cli, args)
+    assert run.exit_code == 3, run.output
+    assert (  # an .npy declares no unit; 0.6 discounted for two tries reads 0.429
+        "ambiguous: seeds 0 and 1 fit the source 0.0 deg / 1.5 input units apart (confidences "
+        "0.800 and 0.429)" in run.stderr
+    )
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["passed"] is False and report["check"]["ambiguous"]
+    assert [a["seed"] for a in report["check"]["alternatives"]] == [0, 1]
+    assert np.loadtxt(tmp_path / "T.txt")[0, 3] == 0.0  # the more confident pose is written
+    run = CliRunner().invoke(cli, [*args, "--no-recheck"])
+    assert run.exit_code == 0, run.output

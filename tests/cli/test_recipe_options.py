@@ -36,6 +36,7 @@ FLAGS = {
     "min_confidence": "--min-confidence",
     "fallback": "--fallback",
     "retries": "--retries",
+    "recheck": "--recheck",
     "turns": "--turns",
     "seed": "--seed",
 }

@@ -192,3 +192,19 @@ def test_the_report_keeps_the_retries_whichever_result_the_fallback_keeps():
     assert got.fallback["learned_confidence"] == got.retries["first_confidence"]
     assert len(got.retries["tries"]) == 2 and got.retries["kept_seed"] is None
     assert got.timings["retries"] == got.retries["seconds"] and "fallback" in got.timings
+
+
+def test_a_retry_that_cannot_fit_is_listed_and_the_next_seed_tried():
+    from byoc_cli.errors import RegistrationError
+
+    def again(seed: int) -> Registration:
+        if seed == 8:
+            raise RegistrationError("only 2 correspondences (need 3)")
+        return _registration(0.9, seed, float(seed))
+
+    kept = with_retries(_registration(0.1, 7), again, 7, 2, GATE)
+    assert kept.retries["tries"][0] == {
+        "seed": 8, "confidence": None, "error": "only 2 correspondences (need 3)"
+    }  # fmt: skip
+    assert kept.retries["kept_seed"] == 9 and kept.T_tgt_src[0, 3] == 9.0
+    assert kept.confidence == pytest.approx(discounted(0.9, 3)) and kept.passed

@@ -73,14 +73,17 @@ def recorded_below(recorded: dict, gate: float) -> bool:
 
 
 def init_reason(record: dict) -> str | None:
-    """Why a pair did not pass other than its confidence: it is ambiguous (a turned try fits
-    as well elsewhere), or it was registered from its initial pose and left the trust region;
-    None: neither."""
-    from byoc_cli.cli.pairwise import ambiguity
+    """Why a pair did not pass other than its confidence: it is ambiguous (a turned try, or
+    the check with another seed, fits elsewhere), or it was registered from its initial pose
+    and left the trust region; None: neither."""
+    from byoc_cli.cli.pairwise import ambiguity, check_ambiguity
 
     turns = record.get("turns") or {}
     if turns.get("ambiguous"):
         return ambiguity(turns)
+    check = record.get("check") or {}
+    if check.get("ambiguous"):
+        return check_ambiguity(check, record.get("unit"))
     init = record.get("init") or {}
     if not init:
         return None

@@ -299,6 +299,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "turns": result.turns,
         "reproduced": result.reproduced,
         "retries": result.retries,
+        "check": result.check,
         "scale": run["scale"],
         "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
         "source_scale": run["factors"][0],
@@ -341,3 +342,15 @@ def ambiguity(turns: dict) -> str:
     tries = sorted(turns["tries"], key=lambda t: -t["confidence"])
     shown = ", ".join(f"{t['confidence']:.3f} turned {t['degrees']:g} deg" for t in tries[:3])
     return f"ambiguous: the source fits at more than one pose (confidences {shown})"
+
+
+def check_ambiguity(check: dict, unit: str | None) -> str:
+    """``ambiguous: ...`` of a result's ``check`` report (:mod:`byoc_cli.pipeline.recheck`):
+    where the two seeds put the source, and their confidences."""
+    first, second = check["alternatives"]
+    gap = check["apart"]
+    return (
+        f"ambiguous: seeds {first['seed']} and {second['seed']} fit the source "
+        f"{gap['rotation_deg']:.1f} deg / {format_length(gap['translation'], unit)} apart "
+        f"(confidences {first['confidence']:.3f} and {second['confidence']:.3f})"
+    )

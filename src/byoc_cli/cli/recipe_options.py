@@ -26,6 +26,7 @@ from byoc_cli.cli.options import (
     int_option,
     path_option,
 )
+from byoc_cli.pipeline import recheck
 from byoc_cli.pipeline import recipe as recipes
 
 
@@ -128,6 +129,16 @@ def _options() -> dict[str, Callable]:
             "the FPFH fallback; docs/low-overlap.md). 0: never. "
             f"{_default('gate.retries')}",
         ),
+        "recheck": click.option(
+            "--recheck/--no-recheck",
+            default=None,
+            help="With byoc features: when the result passes with an estimated overlap below "
+            f"{recheck.BELOW_OVERLAP:g}, match and fit the same features once more with the next "
+            f"seed; when that ends elsewhere at confidence {recheck.RIVAL_FLOOR:g} or more, the "
+            "result is ambiguous and exits 3, "
+            "and the report lists both poses (docs/low-overlap.md). "
+            f"{_default('gate.recheck')}",
+        ),
         "turns": click.option(
             "--turns/--no-turns",
             default=None,
@@ -173,6 +184,7 @@ FIELDS = {
     "min_confidence": "gate.min_confidence",
     "fallback": "gate.fallback",
     "retries": "gate.retries",
+    "recheck": "gate.recheck",
     "turns": "matching.turns",
     "seed": "seed",
 }
@@ -198,6 +210,7 @@ PAIRWISE = (
     "min_confidence",
     "fallback",
     "retries",
+    "recheck",
     "turns",
     "seed",
 )

@@ -35,6 +35,7 @@ from byoc_cli.cli.pair_files import (
 )
 from byoc_cli.cli.pairwise import (
     ambiguity,
+    check_ambiguity,
     check_depth_inputs,
     cloud_factors,
     format_length,
@@ -245,6 +246,8 @@ def failure_line(result, min_confidence: float, unit: str | None) -> str:
     written = "T is likely wrong (written all the same)"
     if (result.turns or {}).get("ambiguous"):
         return f"byoc: {ambiguity(result.turns)}: {written}"
+    if (result.check or {}).get("ambiguous"):
+        return f"byoc: {check_ambiguity(result.check, unit)}: {written}"
     if init.get("check") == "disagrees":
         return (
             f"byoc: the global result lies {_moved(init['correction'], unit)} from --init, "

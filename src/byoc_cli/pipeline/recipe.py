@@ -165,11 +165,15 @@ class GateRecipe:
             this many next seeds, each retry's confidence discounted for the tries it was
             picked from, and keep the most confident (:mod:`byoc_cli.pipeline.retries`);
             before the fallback. 0: never.
+        recheck: a learned result that passes at low overlap is registered once more with
+            the next seed, and is ambiguous (does not pass) when that ends elsewhere
+            (:mod:`byoc_cli.pipeline.recheck`).
     """
 
     min_confidence: float = DEFAULT_MIN_CONFIDENCE
     fallback: str = "none"
     retries: int = 0
+    recheck: bool = False
 
 
 @dataclass(frozen=True)
@@ -245,7 +249,7 @@ PRESETS: dict[str, RegistrationRecipe] = {
         MatchingRecipe(max_points=5000, correspondences=2500),
         FittingRecipe(),
         RefinementRecipe("multiscale"),
-        GateRecipe(fallback="fpfh", retries=2),
+        GateRecipe(fallback="fpfh", retries=2, recheck=True),
     ),
     # Open3D's tutorial voxel for FPFH; RANSAC needs more than the top 200 of noisy FPFH
     # matches; 10000 keeps every point of a 3DMatch fragment at 5 cm (median rotation error

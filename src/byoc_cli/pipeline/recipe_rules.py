@@ -123,6 +123,7 @@ RULES: dict[str, FieldRule] = {
     "gate.min_confidence": FieldRule("number", 0, 1),
     "gate.fallback": FieldRule("choice", words=FALLBACKS),
     "gate.retries": FieldRule("int", 0, limits.MAX_RETRIES),
+    "gate.recheck": FieldRule("bool"),
     "seed": FieldRule("int", 0, 2**64 - 1),
 }
 

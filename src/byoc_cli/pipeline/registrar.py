@@ -27,6 +27,7 @@ from byoc_cli.pipeline.fallback import Fallback
 from byoc_cli.pipeline.featurizer import Featurizer
 from byoc_cli.pipeline.memo import RefineClouds
 from byoc_cli.pipeline.pair import match_pair, same_voxel, scan_lines
+from byoc_cli.pipeline.recheck import checked
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.pipeline.retries import retried
 from byoc_cli.pipeline.sequence import register_either
@@ -153,7 +154,7 @@ class Registrar(Featurizer):
         turned: Any = None,
     ) -> Registration:
         """Register two featured clouds: :func:`~byoc_cli.pipeline.pair.match_pair`, then the
-        :mod:`~byoc_cli.pipeline.retries`, :mod:`~byoc_cli.pipeline.turns` and fallback.
+        retries, :mod:`~byoc_cli.pipeline.recheck`, :mod:`~byoc_cli.pipeline.turns`, fallback.
 
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale; with an
@@ -174,6 +175,7 @@ class Registrar(Featurizer):
         recipe = self.recipe_of(estimator, refine, max_points, num_correspondences, seed)
         registration = self.match_alone(src, tgt, **settings)
         registration = retried(self, registration, (src, tgt), settings, recipe)
+        registration = checked(self, registration, (src, tgt), settings, recipe)
         first = registration.confidence  # the fallback answers to the first learned result
         registration, done = with_turns(self, registration, (src, tgt), turned, settings)
         if done:

@@ -102,6 +102,12 @@ class Registration(NamedTuple):
             ``first_confidence``, the ``tries`` (``seed``, discounted ``confidence``,
             ``model_confidence``), the ``kept_seed`` (None: the first result) and the
             ``seconds``; None otherwise.
+        check: when a learned result that passed at low overlap was registered again with
+            the next seed (:func:`byoc_cli.pipeline.recheck.with_check`): the check's ``seed``,
+            ``model_confidence`` and ``T_tgt_src``, whether it ``agrees``, whether the result
+            is ``ambiguous`` (then it does not pass), the ``alternatives`` (both poses with
+            their ``seed``, ``confidence`` and ``T_tgt_src``, most confident first), the
+            ``kept_seed`` and the ``seconds``; None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -133,3 +139,4 @@ class Registration(NamedTuple):
     turns: dict | None = None
     reproduced: dict | None = None
     retries: dict | None = None
+    check: dict | None = None

@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from byoc_cli.errors import RegistrationError
 from byoc_cli.pipeline.results import Features, Registration
 
 
@@ -60,7 +61,8 @@ def with_retries(
         The kept result; when retries ran, its ``retries`` holds the ``first_confidence``,
         the ``tries`` (each retry's ``seed``, discounted ``confidence`` and the model's
         ``model_confidence``), ``kept_seed`` (None: the first result was kept) and
-        ``seconds``, and its ``timings["retries"]`` the seconds of the retries. A kept retry
+        ``seconds``, and its ``timings["retries"]`` the seconds of the retries (a retry that
+        raised ``RegistrationError`` is listed with its ``error`` and no confidence). A kept retry
         has the discounted confidence (``passed`` from it), and carries the first result's
         recipe and seed (the run that made it).
     """
@@ -69,7 +71,11 @@ def with_retries(
     start = time.perf_counter()
     tries, kept = [], None
     for k in range(1, retries + 1):
-        other = again(retry_seed(seed, k))
+        try:
+            other = again(retry_seed(seed, k))
+        except RegistrationError as exc:  # no transform under this seed: the next one
+            tries.append({"seed": retry_seed(seed, k), "confidence": None, "error": str(exc)})
+            continue
         confidence = discounted(other.confidence, k + 1)
         tries.append(
             {"seed": other.seed, "confidence": confidence, "model_confidence": other.confidence}
