@@ -20,13 +20,15 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.pipeline.retries import at_own_voxel, discounted, retry_seed
+
+if TYPE_CHECKING:  # numpy stays unloaded for the commands' --help, which reads the constants
+    import numpy as np
+
+    from byoc_cli.pipeline.results import Features, Registration
 
 #: a passing learned result is checked when its estimated overlap is below this
 BELOW_OVERLAP = 0.5
@@ -143,6 +145,8 @@ def measure(src: Features, result: Registration) -> Callable[[np.ndarray, np.nda
     apart they put the source's median point (input coordinates and units; the translations
     of georeferenced scans differ by kilometres for 0.1 deg, and a stray point would drag a
     mean), in ``result``'s voxels too."""
+    import numpy as np
+
     from byoc_cli.pipeline.local import correction
 
     points = src.cloud if src.cloud is not None else src.points

@@ -140,7 +140,9 @@ def refine_multiscale(
         for _ in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
             if anchor is None or float(np.abs(moved - anchor).max()) > RESEARCH * size:
-                found = _search(index, torch.from_numpy(moved), SEARCH_REACH[level], parallel)
+                found = search_candidates(
+                    index, torch.from_numpy(moved), SEARCH_REACH[level], parallel
+                )
                 candidates = found.numpy()
                 coordinates = candidate_coordinates(index, found).numpy()
                 anchor = moved
@@ -187,7 +189,7 @@ def measure_fit(
     if len(p) < MIN_CORRESPONDENCES or len(q) < MIN_CORRESPONDENCES:
         return Refinement(T, 0, 0.0)
     moved = p @ T[:3, :3].T + T[:3, 3]
-    near = nearest_of(index, moved, _search(index, moved, SEARCH_REACH[level], None))
+    near = nearest_of(index, moved, search_candidates(index, moved, SEARCH_REACH[level], None))
     near = Nearest(near.index.numpy(), near.distance2.numpy())
     fitness, rmse, step = _meet(moved.numpy(), near, (q.numpy(), n.numpy()), dist, voxel_size)
     if step is None:
@@ -224,7 +226,9 @@ def _meet(
 SPLIT_SEARCH = 4096
 
 
-def _search(index: CellIndex, queries: torch.Tensor, reach: int, parallel) -> torch.Tensor:
+def search_candidates(
+    index: CellIndex, queries: torch.Tensor, reach: int, parallel
+) -> torch.Tensor:
     """:func:`nearest_candidates` of ``queries (Q, 3)``, by halves through ``parallel`` (each
     row's search is its own: the halves give the rows of the whole)."""
     if parallel is None or len(queries) < SPLIT_SEARCH:

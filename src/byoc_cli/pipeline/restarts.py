@@ -23,7 +23,7 @@ from byoc_cli.pipeline.refine import (
     MIN_CORRESPONDENCES,
     RESEARCH,
     TOLERANCE,
-    _search,
+    search_candidates,
 )
 from byoc_cli.pipeline.refine_levels import (
     MAX_SOURCE_POINTS,
@@ -190,7 +190,7 @@ class _StartSearch:
         ]
         if stale:
             queries = torch.from_numpy(moved[stale].reshape(-1, 3))
-            found = _search(self.index, queries, self.reach, self.parallel)
+            found = search_candidates(self.index, queries, self.reach, self.parallel)
             coordinates = candidate_coordinates(self.index, found).numpy()
             found = found.numpy()
             size = len(found) // len(stale)

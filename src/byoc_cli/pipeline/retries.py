@@ -23,10 +23,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.pipeline.results import Features, Registration
+
+if TYPE_CHECKING:
+    from byoc_cli.pipeline.results import Features, Registration
 
 
 def discounted(confidence: float, tries: int) -> float:
