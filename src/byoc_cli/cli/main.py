@@ -128,8 +128,8 @@ def cli() -> None:
 
     Results (matrices, JSON) go to stdout or the files named; progress, tables and
     logs go to stderr. Exit codes: 0 success, 1 bad input or runtime error, 2 usage
-    error, 3 registered below the confidence gate. -v and -q work before or after the
-    command's name.
+    error, 3 registered below the confidence gate or ambiguous (T written all the same).
+    -v and -q work before or after the command's name.
     """
 
 
