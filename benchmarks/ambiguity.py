@@ -298,9 +298,10 @@ def _run(name, args, runner_box) -> list[dict]:
         if name == "cut":  # cut_pairs.py's criterion on the source's points
             from cut_pairs import judged
 
-            source = str(Path(refs[0][0]).resolve())
+            folder = Path(refs[0][0]).resolve().parent  # a cut pair's folder, in its root
+            source = f"{folder.name}/{Path(refs[0][0]).name}"
             summary = {"source": source, "T_tgt_src": T.tolist(), "passed": record["passed"]}
-            record["right"] = judged(summary, Path("/"))["right"]
+            record["right"] = judged(summary, folder.parent)["right"]
         records.append(record)
         if n % 10 == 0:
             print(f"  {name}: {n} pairs, {time.perf_counter() - start:.0f} s", file=sys.stderr)
