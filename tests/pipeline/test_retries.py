@@ -76,6 +76,8 @@ def test_the_first_retry_that_passes_after_the_discount_replaces_the_first_resul
     assert note["first_confidence"] == 0.2 and note["kept_seed"] == 9
     assert [t["seed"] for t in note["tries"]] == [8, 9]
     assert [t["model_confidence"] for t in note["tries"]] == [0.6, 0.8]
+    assert [t["T_tgt_src"][0][3] for t in note["tries"]] == [8.0, 9.0]  # every pose tried
+    assert note["first_T_tgt_src"] == np.eye(4).tolist()
     assert note["tries"][0]["confidence"] == pytest.approx(discounted(0.6, 2))
     assert kept.timings["retries"] == note["seconds"] >= 0 and kept.timings["fit"] == 0.1
 
@@ -180,6 +182,7 @@ def test_a_real_pair_below_the_gate_is_retried_and_the_first_try_kept_to_the_byt
     assert [t["seed"] for t in retried.retries["tries"]] == [2, 3]
     assert retried.retries["kept_seed"] is None
     assert retried.retries["first_confidence"] == plain.confidence
+    assert retried.retries["first_T_tgt_src"] == plain.T_tgt_src.tolist()
     assert np.array_equal(retried.T_tgt_src, plain.T_tgt_src)
     assert retried.confidence == plain.confidence and not retried.passed
 

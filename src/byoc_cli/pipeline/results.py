@@ -99,9 +99,9 @@ class Registration(NamedTuple):
             None otherwise.
         retries: when the first result was below the gate and the matching ran again with
             the next seeds (:func:`byoc_cli.pipeline.retries.with_retries`): the
-            ``first_confidence``, the ``tries`` (``seed``, discounted ``confidence``,
-            ``model_confidence``), the ``kept_seed`` (None: the first result) and the
-            ``seconds``; None otherwise.
+            ``first_confidence`` and ``first_T_tgt_src``, the ``tries`` (``seed``, discounted
+            ``confidence``, ``model_confidence``, ``T_tgt_src``), the ``kept_seed`` (None: the
+            first result) and the ``seconds``; None otherwise.
         check: when a learned result that passed at low overlap was registered again with
             the next seed (:func:`byoc_cli.pipeline.recheck.with_check`): the check's ``seed``,
             ``model_confidence`` and ``T_tgt_src``, whether it ``agrees``, whether the result

@@ -60,9 +60,10 @@ def with_retries(
         gate: the run's ``gate.min_confidence``; a first result at or above it is not retried.
 
     Returns:
-        The kept result; when retries ran, its ``retries`` holds the ``first_confidence``,
-        the ``tries`` (each retry's ``seed``, discounted ``confidence`` and the model's
-        ``model_confidence``), ``kept_seed`` (None: the first result was kept) and
+        The kept result; when retries ran, its ``retries`` holds the ``first_confidence``
+        and ``first_T_tgt_src``, the ``tries`` (each retry's ``seed``, discounted
+        ``confidence``, the model's ``model_confidence`` and ``T_tgt_src``: every pose tried
+        below the gate), ``kept_seed`` (None: the first result was kept) and
         ``seconds``, and its ``timings["retries"]`` the seconds of the retries (a retry that
         raised ``RegistrationError`` is listed with its ``error`` and no confidence). A kept retry
         has the discounted confidence (``passed`` from it), and carries the first result's
@@ -81,6 +82,7 @@ def with_retries(
         confidence = discounted(other.confidence, k + 1)
         tries.append(
             {"seed": other.seed, "confidence": confidence, "model_confidence": other.confidence}
+            | {"T_tgt_src": other.T_tgt_src.tolist()}
         )
         if confidence > (first if kept is None else kept).confidence:
             kept = other._replace(confidence=confidence, passed=confidence >= gate)
@@ -89,6 +91,7 @@ def with_retries(
     seconds = time.perf_counter() - start
     note = {
         "first_confidence": first.confidence,
+        "first_T_tgt_src": first.T_tgt_src.tolist(),
         "tries": tries,
         "kept_seed": None if kept is None else kept.seed,
         "seconds": seconds,
