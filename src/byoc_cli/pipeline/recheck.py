@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from byoc_cli.errors import RegistrationError
-from byoc_cli.pipeline.retries import at_own_voxel, discounted, retry_seed
+from byoc_cli.pipeline.retries import at_own_voxel, discounted, reseeded, retry_seed
 
 if TYPE_CHECKING:  # numpy stays unloaded for the commands' --help, which reads the constants
     import numpy as np
@@ -130,13 +130,10 @@ def checked(made: Any, result: Registration, pair: tuple, settings: dict, recipe
     :class:`Features`) with ``settings`` (its keywords), whose recipe is ``recipe``, where it
     :func:`needs_check` and the features are at their own voxel
     (:func:`~byoc_cli.pipeline.retries.at_own_voxel`); ``result`` otherwise."""
-    src, tgt = pair
+    src = pair[0]
     if not needs_check(result, recipe.gate.recheck) or not at_own_voxel(made, src):
         return result
-
-    def again(seed: int) -> Registration:
-        return made.match_alone(src, tgt, **{**settings, "seed": seed})
-
+    again = reseeded(made, pair, settings)
     return with_check(result, again, check_seed(result, recipe.seed), measure(src, result))
 
 

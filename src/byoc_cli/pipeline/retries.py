@@ -120,11 +120,19 @@ def retried(made: Any, first: Registration, pair: tuple, settings: dict, recipe:
     (source and target :class:`Features`) with ``settings`` (its keywords), whose recipe is
     ``recipe``; each retry changes only the seed. No retries where :func:`at_own_voxel` is
     false."""
+    gate = recipe.gate
+    retries = gate.retries if at_own_voxel(made, pair[0]) else 0
+    again = reseeded(made, pair, settings)
+    return with_retries(first, again, recipe.seed, retries, gate.min_confidence)
+
+
+def reseeded(made: Any, pair: tuple, settings: dict) -> Callable[[int], Registration]:
+    """``again(seed)``: ``made.match_alone`` of ``pair`` (source and target
+    :class:`Features`) with ``settings`` (its keywords) and only the seed changed (the
+    retries' and the check's tries)."""
     src, tgt = pair
 
     def again(seed: int) -> Registration:
         return made.match_alone(src, tgt, **{**settings, "seed": seed})
 
-    gate = recipe.gate
-    retries = gate.retries if at_own_voxel(made, src) else 0
-    return with_retries(first, again, recipe.seed, retries, gate.min_confidence)
+    return again
