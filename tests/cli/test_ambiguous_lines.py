@@ -1,6 +1,7 @@
 """What `register` and `register-batch` say of an ambiguous result (`--turns`: another turned
-try fits about as well elsewhere; the check with another seed ends elsewhere): one line
-naming it, and a rerun counts it below the gate."""
+try fits about as well elsewhere; the check with another seed ends elsewhere) and of one that
+sees through the other scan (the visibility check): one line naming it, and a rerun counts
+it below the gate."""
 
 from __future__ import annotations
 
@@ -35,8 +36,20 @@ CHECK = {
 }
 
 
+VISIBILITY = {
+    "source_in_target": 0.012,
+    "target_in_source": 0.138,
+    "seen": [3472, 3271],
+    "free_space": 0.138,
+    "max_free_space": 0.09,
+    "consistent": False,
+    "seconds": 0.004,
+}
+
+
 def test_register_says_ambiguous_with_the_rivals_confidences():
     result = SimpleNamespace(turns=TURNS, init=None, path="global", confidence=0.91, check=None)
+    result.visibility = None
     line = failure_line(result, 0.45, "m")
     assert line.startswith("byoc: ambiguous: the source fits at more than one pose")
     assert "0.910 turned 120 deg, 0.880 turned 240 deg" in line and "\n" not in line
@@ -46,6 +59,7 @@ def test_a_result_that_is_not_ambiguous_is_below_the_gate_as_before():
     result = SimpleNamespace(turns={**TURNS, "ambiguous": False}, init=None, path="global")
     result.check = {**CHECK, "ambiguous": False, "alternatives": []}
     result.confidence = 0.3
+    result.visibility = {**VISIBILITY, "consistent": True}
     assert "below --min-confidence 0.45" in failure_line(result, 0.45, "m")
 
 
@@ -60,6 +74,7 @@ def test_batch_names_why_and_a_rerun_counts_it_below_the_gate(tmp_path):
 
 def test_register_and_batch_say_where_the_two_seeds_put_the_source(tmp_path):
     result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.495, check=CHECK)
+    result.visibility = None
     line = failure_line(result, 0.45, "m")
     assert line == (
         "byoc: ambiguous: seeds 0 and 1 fit the source 14.6 deg / 1.14 m apart (confidences "
@@ -113,5 +128,66 @@ def test_register_exits_3_with_both_poses_when_the_check_lands_elsewhere(tmp_pat
     assert report["passed"] is False and report["check"]["ambiguous"]
     assert [a["seed"] for a in report["check"]["alternatives"]] == [0, 1]
     assert np.loadtxt(tmp_path / "T.txt")[0, 3] == 0.0  # the more confident pose is written
-    run = CliRunner().invoke(cli, [*args, "--no-recheck"])
+    run = CliRunner().invoke(cli, [*args, "--no-recheck", "--no-visibility"])
     assert run.exit_code == 0, run.output
+
+
+def test_register_and_batch_say_what_lies_in_the_other_scans_free_space(tmp_path):
+    result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.631, check=None)
+    result.visibility = VISIBILITY
+    line = failure_line(result, 0.45, "m")
+    assert line == (
+        "byoc: inconsistent: under T 1% of the source lies in space the target's sensor saw "
+        "empty, 14% of the target in the source's (at most 9%; sensors at the clouds' origins, "
+        "--no-visibility if they are not): T is likely wrong (written all the same)"
+    )
+    record = {"status": "low_confidence", "confidence": 0.631, "visibility": VISIBILITY}
+    record["output"] = "a.txt"
+    assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
+    summary = tmp_path / "summary.jsonl"
+    summary.write_text(json.dumps(record) + "\n")
+    (earlier,) = recorded_results(summary).values()
+    assert recorded_below(earlier, 0.45)  # its confidence alone would pass
+    consistent = {**record, "visibility": {**VISIBILITY, "consistent": True}}
+    assert init_reason(consistent) is None
+
+
+def test_register_exits_3_when_the_source_lies_in_the_targets_free_space(tmp_path, monkeypatch):
+    """`byoc register` end to end with the matching stood in: two views of a wall 3 m in
+    front of the sensor, and a result that passes at 0.8 with the source a metre in front of
+    the wall the target saw."""
+    import numpy as np
+    from click.testing import CliRunner
+
+    from byoc_cli.cli.main import cli
+    from byoc_cli.pipeline.registrar import Registrar
+    from byoc_cli.pipeline.results import Registration
+
+    def match_alone(self, src, tgt, **kw):
+        T = np.eye(4)
+        T[2, 3] = -1.0
+        return Registration(
+            T, 0.8, True, 10, 20, 0.5, 0.9, 100, 100, 0.05, 0.025, "byoc", "ransac",
+            "multiscale", 1000, 100, kw["seed"] or 0, None, {"fit": 0.1},
+        )  # fmt: skip
+
+    monkeypatch.setattr(Registrar, "match_alone", match_alone)
+    ticks = np.arange(-1.0, 1.01, 0.02)
+    x, y = np.meshgrid(ticks, ticks, indexing="ij")
+    wall = np.stack([x.ravel(), y.ravel(), np.full(x.size, 3.0)], axis=1).astype(np.float32)
+    np.save(tmp_path / "a.npy", wall)
+    np.save(tmp_path / "b.npy", wall)
+    args = ["register", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "--voxel-size", "0.025"]
+    args += ["-o", str(tmp_path / "T.txt"), "--json", str(tmp_path / "r.json")]
+    run = CliRunner().invoke(cli, args)
+    assert run.exit_code == 3, run.output
+    assert "inconsistent: under T 100% of the source lies in space the target's sensor" in (
+        run.stderr
+    )
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["passed"] is False and not report["visibility"]["consistent"]
+    assert report["visibility"]["source_in_target"] == 1.0
+    assert np.loadtxt(tmp_path / "T.txt")[2, 3] == -1.0  # T is written all the same
+    run = CliRunner().invoke(cli, [*args, "--no-visibility"])
+    assert run.exit_code == 0, run.output
+    assert json.loads((tmp_path / "r.json").read_text())["visibility"] is None

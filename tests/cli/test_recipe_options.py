@@ -37,6 +37,7 @@ FLAGS = {
     "fallback": "--fallback",
     "retries": "--retries",
     "recheck": "--recheck",
+    "visibility": "--visibility",
     "turns": "--turns",
     "seed": "--seed",
 }

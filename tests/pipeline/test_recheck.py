@@ -142,7 +142,9 @@ def _stand_in_registrar(monkeypatch, confidences, places, recipe=None):
 
 
 def _features(voxel_size: float) -> SimpleNamespace:
-    return SimpleNamespace(voxel_size=voxel_size, cloud=None, points=np.zeros((3, 3)), scale=1.0)
+    return SimpleNamespace(
+        voxel_size=voxel_size, cloud=None, points=np.zeros((3, 3)), scale=1.0, origin=None
+    )
 
 
 def test_the_registrar_checks_a_retry_that_passed_with_the_next_seed(monkeypatch):

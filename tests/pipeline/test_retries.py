@@ -135,7 +135,9 @@ def _stand_in_registrar(monkeypatch, confidences: dict[int, float], fallback: fl
 
 
 def _features(voxel_size: float) -> SimpleNamespace:
-    return SimpleNamespace(voxel_size=voxel_size, cloud=None)
+    return SimpleNamespace(
+        voxel_size=voxel_size, cloud=None, points=np.zeros((3, 3)), scale=1.0, origin=None
+    )
 
 
 def test_the_registrar_retries_before_the_fallback(monkeypatch):

@@ -86,8 +86,9 @@ def _plan(pairs, out_dir: Path) -> list[tuple[Any, Path]]:
     "register-batch",
     epilog="Exit codes: 0 every pair registered (or skipped); 1 bad input, or a pair failed "
     "(the others are still registered); 2 usage error; 3 a pair registered below "
-    "--min-confidence, ambiguous, or, from an initial pose, beyond --max-correction (its T "
-    "file is still written), or skipped whose recorded result did not pass; such pairs are "
+    "--min-confidence, ambiguous, inconsistent with what the scans saw, or, from an initial "
+    "pose, beyond --max-correction (its T file is still written), or skipped whose recorded "
+    "result did not pass; such pairs are "
     "named on stderr (the first 10, then a count).",
 )
 @click.argument("pairs", type=click.Path(path_type=Path, dir_okay=False))

@@ -76,7 +76,7 @@ def init_reason(record: dict) -> str | None:
     """Why a pair did not pass other than its confidence: it is ambiguous (a turned try, or
     the check with another seed, fits elsewhere), or it was registered from its initial pose
     and left the trust region; None: neither."""
-    from byoc_cli.cli.pairwise import ambiguity, check_ambiguity
+    from byoc_cli.cli.pairwise import ambiguity, check_ambiguity, seen_through
 
     turns = record.get("turns") or {}
     if turns.get("ambiguous"):
@@ -84,6 +84,9 @@ def init_reason(record: dict) -> str | None:
     check = record.get("check") or {}
     if check.get("ambiguous"):
         return check_ambiguity(check, record.get("unit"))
+    visibility = record.get("visibility") or {}
+    if not visibility.get("consistent", True):
+        return seen_through(visibility)
     init = record.get("init") or {}
     if not init:
         return None

@@ -128,7 +128,8 @@ def cli() -> None:
 
     Results (matrices, JSON) go to stdout or the files named; progress, tables and
     logs go to stderr. Exit codes: 0 success, 1 bad input or runtime error, 2 usage
-    error, 3 registered below the confidence gate or ambiguous (T written all the same).
+    error, 3 registered below the confidence gate, ambiguous or inconsistent (T written
+    all the same).
     -v and -q work before or after the command's name.
     """
 

@@ -300,6 +300,7 @@ def registration_report(result, registrar, pair: tuple[Path, Path], run: dict) -
         "reproduced": result.reproduced,
         "retries": result.retries,
         "check": result.check,
+        "visibility": result.visibility,
         "scale": run["scale"],
         "depth_scale": [depth_scale_used(p, run.get("depth_scale")) for p in pair],
         "source_scale": run["factors"][0],
@@ -342,6 +343,18 @@ def ambiguity(turns: dict) -> str:
     tries = sorted(turns["tries"], key=lambda t: -t["confidence"])
     shown = ", ".join(f"{t['confidence']:.3f} turned {t['degrees']:g} deg" for t in tries[:3])
     return f"ambiguous: the source fits at more than one pose (confidences {shown})"
+
+
+def seen_through(visibility: dict) -> str:
+    """``inconsistent: ...`` of a result's ``visibility`` report
+    (:mod:`byoc_cli.pipeline.visibility`): how much of each cloud lies in the other's free
+    space."""
+    return (
+        f"inconsistent: under T {visibility['source_in_target']:.0%} of the source lies in space "
+        f"the target's sensor saw empty, {visibility['target_in_source']:.0%} of the target in "
+        f"the source's (at most {visibility['max_free_space']:.0%}; sensors at the clouds' "
+        "origins, --no-visibility if they are not)"
+    )
 
 
 def check_ambiguity(check: dict, unit: str | None) -> str:

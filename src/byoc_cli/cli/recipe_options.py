@@ -26,7 +26,7 @@ from byoc_cli.cli.options import (
     int_option,
     path_option,
 )
-from byoc_cli.pipeline import recheck
+from byoc_cli.pipeline import recheck, visibility
 from byoc_cli.pipeline import recipe as recipes
 
 
@@ -139,6 +139,16 @@ def _options() -> dict[str, Callable]:
             "and the report lists both poses (docs/low-overlap.md). "
             f"{_default('gate.recheck')}",
         ),
+        "visibility": click.option(
+            "--visibility/--no-visibility",
+            default=None,
+            help="With byoc features at their own voxel: a result that passes exits 3 when "
+            f"more than {visibility.MAX_FREE_SPACE:g} of either cloud lies, under T, in space "
+            "the other's sensor saw empty; each sensor is taken at its cloud's origin (depth "
+            "frames, 3DMatch fragments, scans in their scanner's frame). --no-visibility for "
+            "clouds moved out of their sensors' frames (docs/low-overlap.md). "
+            f"{_default('gate.visibility')}",
+        ),
         "turns": click.option(
             "--turns/--no-turns",
             default=None,
@@ -185,6 +195,7 @@ FIELDS = {
     "fallback": "gate.fallback",
     "retries": "gate.retries",
     "recheck": "gate.recheck",
+    "visibility": "gate.visibility",
     "turns": "matching.turns",
     "seed": "seed",
 }
@@ -211,6 +222,7 @@ PAIRWISE = (
     "fallback",
     "retries",
     "recheck",
+    "visibility",
     "turns",
     "seed",
 )

@@ -45,6 +45,7 @@ from byoc_cli.cli.pairwise import (
     register_pair,
     registrar,
     registration_report,
+    seen_through,
 )
 from byoc_cli.cli.recipe_options import PAIRWISE, build_recipe, recipe_options
 
@@ -248,6 +249,8 @@ def failure_line(result, min_confidence: float, unit: str | None) -> str:
         return f"byoc: {ambiguity(result.turns)}: {written}"
     if (result.check or {}).get("ambiguous"):
         return f"byoc: {check_ambiguity(result.check, unit)}: {written}"
+    if not (result.visibility or {}).get("consistent", True):
+        return f"byoc: {seen_through(result.visibility)}: {written}"
     if init.get("check") == "disagrees":
         return (
             f"byoc: the global result lies {_moved(init['correction'], unit)} from --init, "

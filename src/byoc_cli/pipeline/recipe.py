@@ -168,12 +168,16 @@ class GateRecipe:
         recheck: a learned result that passes at low overlap is registered once more with
             the next seed, and is ambiguous (does not pass) when that ends elsewhere
             (:mod:`byoc_cli.pipeline.recheck`).
+        visibility: a passing result does not pass when it puts a share of one scan where
+            the other's sensor, at its cloud's origin, saw empty space
+            (:mod:`byoc_cli.pipeline.visibility`).
     """
 
     min_confidence: float = DEFAULT_MIN_CONFIDENCE
     fallback: str = "none"
     retries: int = 0
     recheck: bool = False
+    visibility: bool = False
 
 
 @dataclass(frozen=True)
@@ -249,7 +253,7 @@ PRESETS: dict[str, RegistrationRecipe] = {
         MatchingRecipe(max_points=5000, correspondences=2500),
         FittingRecipe(),
         RefinementRecipe("multiscale"),
-        GateRecipe(fallback="fpfh", retries=2, recheck=True),
+        GateRecipe(fallback="fpfh", retries=2, recheck=True, visibility=True),
     ),
     # Open3D's tutorial voxel for FPFH; RANSAC needs more than the top 200 of noisy FPFH
     # matches; 10000 keeps every point of a 3DMatch fragment at 5 cm (median rotation error

@@ -124,6 +124,7 @@ RULES: dict[str, FieldRule] = {
     "gate.fallback": FieldRule("choice", words=FALLBACKS),
     "gate.retries": FieldRule("int", 0, limits.MAX_RETRIES),
     "gate.recheck": FieldRule("bool"),
+    "gate.visibility": FieldRule("bool"),
     "seed": FieldRule("int", 0, 2**64 - 1),
 }
 

@@ -32,6 +32,7 @@ from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.pipeline.retries import retried
 from byoc_cli.pipeline.sequence import register_either
 from byoc_cli.pipeline.turns import with_turns
+from byoc_cli.pipeline.visibility import seen
 from byoc_cli.threads import in_worker, side_by_side
 
 if TYPE_CHECKING:
@@ -154,7 +155,8 @@ class Registrar(Featurizer):
         turned: Any = None,
     ) -> Registration:
         """Register two featured clouds: :func:`~byoc_cli.pipeline.pair.match_pair`, then the
-        retries, :mod:`~byoc_cli.pipeline.recheck`, :mod:`~byoc_cli.pipeline.turns`, fallback.
+        retries, :mod:`~byoc_cli.pipeline.recheck`, :mod:`~byoc_cli.pipeline.turns`, fallback,
+        :mod:`~byoc_cli.pipeline.visibility`.
 
         Args:
             src, tgt: :meth:`extract` results (same features, voxel size and scale; with an
@@ -178,13 +180,11 @@ class Registrar(Featurizer):
         registration = checked(self, registration, (src, tgt), settings, recipe)
         first = registration.confidence  # the fallback answers to the first learned result
         registration, done = with_turns(self, registration, (src, tgt), turned, settings)
-        if done:
-            return registration
-        if not self.fallback or first >= self.fallback_below:
-            return registration
-        kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
-        passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
-        return kept._replace(recipe=registration.recipe, passed=passed)
+        if not done and self.fallback and first < self.fallback_below:
+            kept = self._fallback.second_opinion(self, registration, src, tgt, recipe.seed)
+            passed = kept.confidence >= recipe.gate.min_confidence  # this run's gate
+            registration = kept._replace(recipe=registration.recipe, passed=passed)
+        return seen(self, registration, (src, tgt), recipe)
 
     def match_alone(self, src: Features, tgt: Features, **settings: Any) -> Registration:
         """:meth:`match` without the fallback's second opinion, whatever the confidence (for a

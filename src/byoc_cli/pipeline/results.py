@@ -108,6 +108,11 @@ class Registration(NamedTuple):
             is ``ambiguous`` (then it does not pass), the ``alternatives`` (both poses with
             their ``seed``, ``confidence`` and ``T_tgt_src``, most confident first), the
             ``kept_seed`` and the ``seconds``; None otherwise.
+        visibility: when a passing result was checked for surfaces in the other scan's free
+            space (:func:`byoc_cli.pipeline.visibility.with_visibility`): the shares
+            ``source_in_target`` and ``target_in_source``, the points ``seen`` of each, the
+            larger share ``free_space``, ``max_free_space``, whether the result is
+            ``consistent`` (else it does not pass) and the ``seconds``; None otherwise.
     """
 
     T_tgt_src: np.ndarray
@@ -140,3 +145,4 @@ class Registration(NamedTuple):
     reproduced: dict | None = None
     retries: dict | None = None
     check: dict | None = None
+    visibility: dict | None = None
