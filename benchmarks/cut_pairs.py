@@ -9,7 +9,13 @@ seeded random direction ``d``, the source (moved by the ground truth) keeping wh
 ``m - w`` along ``d`` and the target what lies before ``m + w`` (``m`` the median of both),
 ``w`` bisected until the share of kept source points within 3.75 cm of a kept target point
 (3DLoMatch's overlap) reaches a goal drawn from the band (a cut whose measured overlap ends
-more than 0.03 from its goal is drawn again). Each pair is written as
+more than 0.03 from its goal is drawn again). With ``--view`` each cloud is cut by the
+directions its own sensor looked along instead (each fragment in its first camera's frame):
+the source keeps the points whose viewing direction from the source's camera makes a cosine
+above ``m - w`` with ``d``, the target those below ``m + w`` from its own; a cut takes whole
+rays away, so nothing that a sensor saw through is left looking empty (what the visibility
+check of ``register`` reads; a planar cut takes away surfaces in front of others that stay).
+Each pair is written as
 ``NAME/source.ply``, ``target.ply`` (the kept points, in each fragment's own frame),
 ``T_gt.txt`` and ``info.json``, with ``pairs.txt`` for ``byoc register-batch``.
 
@@ -53,8 +59,9 @@ def cut(
     nearest: np.ndarray,
     direction: np.ndarray,
     goal: float,
+    sensors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """One planar cut of a pair to an overlap ``goal``.
+    """One cut of a pair to an overlap ``goal``: planar, or by viewing directions.
 
     Args:
         moved: ``(N, 3)`` source points moved into the target's frame by the ground truth.
@@ -63,12 +70,20 @@ def cut(
             :data:`OVERLAP_RADIUS`, -1 where none.
         direction: ``(3,)`` unit vector along which the pair is cut.
         goal: the overlap to reach.
+        sensors: ``(source, target)`` sensor positions ``(3,)`` in the target's frame: cut by
+            the cosine of each point's viewing direction with ``direction``; None: planar.
 
     Returns:
         ``(keep_source (N,), keep_target (M,), overlap)`` boolean masks and the overlap reached,
         or None when no cut keeps :data:`MIN_KEPT` of each cloud within :data:`TOLERANCE`.
     """
-    along_src, along_tgt = moved @ direction, target @ direction
+    if sensors is None:
+        along_src, along_tgt = moved @ direction, target @ direction
+    else:
+        along_src, along_tgt = (
+            _unit(points - at) @ direction
+            for points, at in zip((moved, target), sensors, strict=True)
+        )
     middle = float(np.median(np.concatenate([along_src, along_tgt])))
     low, high = 0.0, float(np.ptp(np.concatenate([along_src, along_tgt])))
     found = None
@@ -91,6 +106,11 @@ def cut(
     return (keep_src, keep_tgt, overlap) if abs(overlap - goal) <= TOLERANCE else None
 
 
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return vectors / np.maximum(norm, 1e-12)
+
+
 def overlap_of(moved: np.ndarray, target: np.ndarray) -> float:
     """The share of ``moved (N, 3)`` within :data:`OVERLAP_RADIUS` of ``target (M, 3)``."""
     from scipy.spatial import cKDTree
@@ -99,8 +119,16 @@ def overlap_of(moved: np.ndarray, target: np.ndarray) -> float:
     return float(np.mean(np.isfinite(distance)))
 
 
-def make(fragments: Path, out: Path, per_pair: int, seed: int, band: tuple[float, float]) -> int:
-    """Write ``per_pair`` cuts of every ground-truth pair under ``fragments``; how many."""
+def make(
+    fragments: Path,
+    out: Path,
+    per_pair: int,
+    seed: int,
+    band: tuple[float, float],
+    view: bool = False,
+) -> int:
+    """Write ``per_pair`` cuts of every ground-truth pair under ``fragments`` (``view``: by
+    viewing directions); how many."""
     from scipy.spatial import cKDTree
 
     from byoc_cli.api import load_cloud
@@ -122,7 +150,8 @@ def make(fragments: Path, out: Path, per_pair: int, seed: int, band: tuple[float
                 break
             direction = rng.standard_normal(3)
             direction /= np.linalg.norm(direction)
-            found = cut(moved, target, nearest, direction, float(rng.uniform(*band)))
+            sensors = (pair.T_gt[:3, 3], np.zeros(3)) if view else None
+            found = cut(moved, target, nearest, direction, float(rng.uniform(*band)), sensors)
             if found is None:
                 continue
             keep_src, keep_tgt, overlap = found
@@ -138,6 +167,7 @@ def make(fragments: Path, out: Path, per_pair: int, seed: int, band: tuple[float
                 "target_fragment": pair.i,
                 "overlap": overlap,
                 "direction": direction.tolist(),
+                "cut": "view" if view else "plane",
                 "kept": [int(keep_src.sum()), int(keep_tgt.sum())],
             }
             (folder / "info.json").write_text(json.dumps(info, indent=1) + "\n")
@@ -213,6 +243,7 @@ def main() -> int:
     p.add_argument("--per-pair", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--band", type=float, nargs=2, default=(0.1, 0.3), metavar=("LOW", "HIGH"))
+    p.add_argument("--view", action="store_true", help="cut by each sensor's viewing directions")
     p = sub.add_parser("judge")
     p.add_argument("summary", type=Path)
     p.add_argument("--pairs", action="store_true", help="a line per pair too")
@@ -223,7 +254,8 @@ def main() -> int:
         if args.command == "make":
             if not 0.0 < args.band[0] < args.band[1] < 1.0 or args.per_pair < 1:
                 parser.error("--band LOW HIGH: 0 < LOW < HIGH < 1; --per-pair at least 1")
-            print(f"{make(args.fragments, args.out, args.per_pair, args.seed, args.band)} pairs")
+            made = make(args.fragments, args.out, args.per_pair, args.seed, args.band, args.view)
+            print(f"{made} pairs")
         else:
             if not args.summary.is_file():
                 parser.error(f"{args.summary}: no such file")

@@ -92,3 +92,38 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path):
     assert run.returncode == 2 and "--band" in run.stderr
     run = _run("judge", str(tmp_path / "none.jsonl"))
     assert run.returncode == 2 and "none.jsonl: no such file" in run.stderr
+
+
+@pytest.mark.realdata
+def test_view_cuts_leave_nothing_that_a_sensor_saw_through(tmp_path, shared_data):
+    """A planar cut takes away surfaces in front of others that stay, which reads as free
+    space under the truth; a cut by viewing directions takes whole rays away, and the truth
+    keeps each cloud out of the other's free space (pipeline/visibility.py)."""
+    import torch
+
+    from byoc_cli.api import load_cloud
+    from byoc_cli.geometry import voxelize
+    from byoc_cli.pipeline.visibility import MAX_FREE_SPACE, free_space
+
+    def kept(path: Path) -> np.ndarray:
+        points = load_cloud(path, scale=1.0).astype(np.float64)
+        return points[voxelize(torch.from_numpy(points), 0.025).point_index.numpy()]
+
+    fragments = shared_data / "3dmatch" / "sample" / "3DMatch"
+    shares = {}
+    for kind in ("plane", "view"):
+        out = tmp_path / kind
+        flags = ["--view"] if kind == "view" else []
+        args = ["make", "--fragments", str(fragments), "--out", str(out), "--per-pair", "3"]
+        run = _run(*args, "--seed", "1", *flags)
+        assert run.returncode == 0, run.stderr
+        shares[kind] = []
+        for line in (out / "pairs.txt").read_text().split("\n")[:-1]:
+            folder = out / line.split("/")[0]
+            info = json.loads((folder / "info.json").read_text())
+            assert info["cut"] == kind and 0.07 <= info["overlap"] <= 0.33
+            T_gt = np.loadtxt(folder / "T_gt.txt")
+            note = free_space(kept(folder / "source.ply"), kept(folder / "target.ply"), T_gt, 0.025)
+            shares[kind].append(note["free_space"])
+    assert len(shares["view"]) == 9 and max(shares["view"]) < MAX_FREE_SPACE / 2
+    assert max(shares["plane"]) > max(shares["view"])

@@ -631,3 +631,37 @@ def test_init_benchmark_refuses_a_collection_without_its_file_before_running(tmp
         [sys.executable, str(script), "bench", "--pairs", "x"], capture_output=True, text=True
     )
     assert result.returncode == 2 and "--pairs" in result.stderr
+
+
+def test_the_visibility_table_counts_wrong_results_above_each_threshold():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from visibility import table
+
+    rows = [  # (set, right, passed, share, share under the truth)
+        ("kinect", True, True, 0.02, 0.01),
+        ("kinect", True, True, 0.05, 0.0),
+        ("kinect", False, True, 0.30, 0.0),
+        ("kinect", False, True, 0.07, 0.02),
+        ("kinect", False, False, 0.90, 0.0),  # refused: not counted
+        ("cut", True, True, 0.01, None),
+    ]
+    lines = table(rows, [0.06, 0.09])
+    assert lines[0] == (
+        "kinect: 5 results, passing 2 right / 2 wrong; largest share: right 0.050, "
+        "ground truth 0.020"
+    )
+    assert lines[1:3] == [
+        "  above 0.06: wrong 2 of 2, right lost 0",
+        "  above 0.09: wrong 1 of 2, right lost 0",
+    ]
+    assert lines[3] == "cut: 1 results, passing 1 right / 0 wrong; largest share: right 0.010"
+
+
+def test_the_visibility_benchmark_needs_something_to_measure():
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "visibility.py")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 1 and "nothing to measure" in run.stderr
