@@ -113,7 +113,7 @@ def _match_alone(registrar, src, tgt, **kw) -> Registration:
     return _registration()._replace(overlap=0.9)  # no check with another seed
 
 
-def test_the_registrar_checks_its_result_except_at_a_finer_auto_voxel(monkeypatch):
+def test_the_registrar_checks_its_result_where_the_features_see_their_own_voxel(monkeypatch):
     monkeypatch.setattr(Registrar, "match_alone", _match_alone)
     wall = _wall(3.0)
     near = _features(
@@ -127,10 +127,8 @@ def test_the_registrar_checks_its_result_except_at_a_finer_auto_voxel(monkeypatc
     off = Registrar(fallback="none", recipe=preset("byoc").changed(gate__visibility=False))
     got = off.match(_features(near.points, own), _features(far.points, own), seed=0)
     assert got.passed and got.visibility is None
-    coarser = _features(near.points, 2.1 * own), _features(far.points, 2.1 * own)
-    assert registrar.match(*coarser, seed=0).visibility["consistent"] is False  # a room, LiDAR
-    finer = _features(near.points, 0.4 * own), _features(far.points, 0.4 * own)
-    assert registrar.match(*finer, seed=0).visibility is None  # an object brought up to scale
+    scaled = _features(near.points, 2.1 * own), _features(far.points, 2.1 * own)
+    assert registrar.match(*scaled, seed=0).visibility is None  # an auto voxel that scaled
     moved = _features(near.points, own, origin=np.array([1e6, 0.0, 0.0]))
     assert registrar.match(moved, _features(far.points, own), seed=0).visibility is None
 

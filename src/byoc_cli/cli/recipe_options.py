@@ -142,8 +142,7 @@ def _options() -> dict[str, Callable]:
         "visibility": click.option(
             "--visibility/--no-visibility",
             default=None,
-            help="With byoc features (not objects brought up to their scale): a result that "
-            "passes exits 3 when "
+            help="With byoc features at their own voxel: a result that passes exits 3 when "
             f"more than {visibility.MAX_FREE_SPACE:g} of either cloud lies, under T, in space "
             "the other's sensor saw empty; each sensor is taken at its cloud's origin (depth "
             "frames, 3DMatch fragments, scans in their scanner's frame). --no-visibility for "

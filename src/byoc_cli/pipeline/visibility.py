@@ -12,10 +12,8 @@ pose a few per cent at most. A passing result above :data:`MAX_FREE_SPACE` does 
 (``byoc register`` exits 3) and the report's ``visibility`` says how much lies where.
 
 It runs where the learned features see the clouds at their own voxel (the Kinect and room
-scale of their training) or at a coarser one (rooms of laser scans, LiDAR: scanners at the
-origin of their scans), not where an auto voxel brought small clouds up to the features'
-scale (objects are often scanned in a frame of their own), and on clouds near their origin
-(a georeferenced cloud's sensor is not at its origin). ``--no-visibility`` turns it off for
+scale of their training, as the retries and the check), on clouds near their origin (a
+georeferenced cloud's sensor is not at its origin). ``--no-visibility`` turns it off for
 clouds that were moved out of their sensors' frames.
 """
 
@@ -23,6 +21,8 @@ from __future__ import annotations
 
 import time
 from typing import TYPE_CHECKING, Any
+
+from byoc_cli.pipeline.retries import at_own_voxel
 
 if TYPE_CHECKING:  # numpy stays unloaded for the commands' --help, which reads the constants
     import numpy as np
@@ -39,13 +39,6 @@ def needs_visibility(result: Registration, enabled: bool) -> bool:
     """Whether ``result`` is checked: the check is on, the result passed and came from the
     global path (a result refined from ``--init`` answers to its trust region)."""
     return enabled and result.passed and result.path == "global"
-
-
-def at_own_or_coarser_voxel(made: Any, feats: Features) -> bool:
-    """Whether ``made`` (a :class:`~byoc_cli.pipeline.registrar.Registrar`) extracted ``feats``
-    at the features' own voxel or a coarser one: a voxel given, or an auto voxel that did not
-    bring small clouds (objects) up to the features' scale."""
-    return not made.auto_voxel or feats.voxel_size >= made.voxel_size * (1 - 1e-9)
 
 
 def near_origin(feats: Features) -> bool:
@@ -120,12 +113,12 @@ def with_visibility(result: Registration, src: Features, tgt: Features) -> Regis
 def seen(made: Any, result: Registration, pair: tuple, recipe: Any) -> Registration:
     """:func:`with_visibility` of ``result``, the registration of ``pair`` (source and target
     :class:`Features` of ``made``, a :class:`~byoc_cli.pipeline.registrar.Registrar`, whose
-    recipe is ``recipe``), where it :func:`needs_visibility`, the features are not scaled down
-    (:func:`at_own_or_coarser_voxel`) and both clouds lie about their origin (:func:`near_origin`);
-    ``result`` otherwise."""
+    recipe is ``recipe``), where it :func:`needs_visibility`, the features are at their own
+    voxel (:func:`~byoc_cli.pipeline.retries.at_own_voxel`) and both clouds lie about their
+    origin (:func:`near_origin`); ``result`` otherwise."""
     src, tgt = pair
     if not needs_visibility(result, recipe.gate.visibility):
         return result
-    if not (at_own_or_coarser_voxel(made, src) and near_origin(src) and near_origin(tgt)):
+    if not (at_own_voxel(made, src) and near_origin(src) and near_origin(tgt)):
         return result
     return with_visibility(result, src, tgt)
