@@ -3,8 +3,13 @@ each cloud lies in the other's free space (pipeline/visibility.py), for right an
 
 Usage::
 
+    python benchmarks/visibility.py --make-frames OUT
     python benchmarks/visibility.py [--fragments DEV SUMMARY] [--folders NAME SUMMARY ...]
         [--cut SUMMARY] [--face-bins 90] [--grow 2] [--any-bin] [--thresholds 0.06 0.09 0.12]
+
+* ``--make-frames OUT``: the posed depth-frame pairs of ../shared/data at the gaps of
+  :data:`FRAME_GAPS` (297 pairs), one folder each (``source.npy``, ``target.npy``, ``T_gt.txt``)
+  with ``OUT/pairs.txt`` for ``register-batch``; then ``--folders NAME OUT/SUMMARY``.
 
 * ``--fragments DEV SUMMARY``: a 3DMatch-layout benchmark (``byoc make-fragments``; the truth
   from its ``gt.log``) and a ``register-batch`` summary of its pairs
@@ -28,13 +33,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
 VOXEL = 0.025
-FRAGMENTS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "3dmatch"
+#: the depth-frame pairs of ``--make-frames``: sequence and frame gaps
+FRAME_GAPS = (
+    ("tum_fr1_desk_full", (10, 20, 30, 40, 50, 60)),
+    ("tum_fr3_cabinet", (1, 2, 4, 6, 8)),
+    ("realsense_tabletop", (5, 10, 15, 25, 30, 35)),
+    ("tum_fr1_rpy", (20, 30, 50, 60)),
+    ("tum_fr1_desk", (2, 4, 8)),
+)
+DATA = Path(
+    os.environ.get("BYOC_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
+FRAGMENTS = DATA / "3dmatch"
 SAMPLE = FRAGMENTS / "sample" / "3DMatch"
 
 
@@ -160,8 +177,31 @@ def table(rows: list[tuple], thresholds: list[float]) -> list[str]:
     return lines
 
 
+def make_frames(out: Path) -> int:
+    """Write the pairs of :data:`FRAME_GAPS` under ``out``; how many."""
+    from byoc_cli.evaluation.pairs import rgbd_pairs
+
+    rgbd = DATA / "rgbd"
+    lines = []
+    for sequence, gaps in FRAME_GAPS:
+        for gap in gaps:
+            pairs, _ = rgbd_pairs([rgbd / sequence], spacing=gap)
+            for pair in pairs:
+                name = pair.name.replace(":", "_").replace("/", "_") + f"_s{gap}"
+                folder = out / name
+                folder.mkdir(parents=True, exist_ok=True)
+                for ref, file in ((pair.source, "source.npy"), (pair.target, "target.npy")):
+                    np.save(folder / file, np.asarray(ref.load(), dtype=np.float32))
+                np.savetxt(folder / "T_gt.txt", pair.T_gt)
+                lines.append(f"{name}/source.npy {name}/target.npy out/{name}.txt")
+    (out / "out").mkdir(parents=True, exist_ok=True)
+    (out / "pairs.txt").write_text("\n".join(lines) + "\n")
+    return len(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--make-frames", type=Path, metavar="OUT")
     parser.add_argument("--fragments", nargs=2, metavar=("DEV", "SUMMARY"), type=Path)
     parser.add_argument(
         "--folders", nargs=2, action="append", default=[], metavar=("NAME", "SUMMARY")
@@ -174,6 +214,9 @@ def main() -> None:
     )
     parser.add_argument("--thresholds", type=float, nargs="+", default=[0.06, 0.09, 0.12])
     args = parser.parse_args()
+    if args.make_frames:
+        print(f"{make_frames(args.make_frames)} pairs")
+        return
     image: dict = {}
     if args.face_bins is not None:
         image["bins"] = args.face_bins

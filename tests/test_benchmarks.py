@@ -665,3 +665,25 @@ def test_the_visibility_benchmark_needs_something_to_measure():
         timeout=120,
     )
     assert run.returncode == 1 and "nothing to measure" in run.stderr
+
+
+def test_the_visibility_frames_are_posed_pairs_of_the_shared_sequences(tmp_path, shared_data):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import numpy as np
+
+    import visibility
+
+    gaps = (("tum_fr1_desk", (8,)),)
+    original, visibility.FRAME_GAPS = visibility.FRAME_GAPS, gaps
+    try:
+        made = visibility.make_frames(tmp_path)
+    finally:
+        visibility.FRAME_GAPS = original
+    lines = (tmp_path / "pairs.txt").read_text().split("\n")[:-1]
+    assert made == len(lines) >= 1 and (tmp_path / "out").is_dir()
+    folder = tmp_path / lines[0].split("/")[0]
+    assert folder.name.endswith("_s8")
+    source = np.load(folder / "source.npy")
+    T_gt = np.loadtxt(folder / "T_gt.txt")
+    assert source.ndim == 2 and source.shape[1] == 3 and T_gt.shape == (4, 4)
+    assert np.allclose(T_gt[:3, :3] @ T_gt[:3, :3].T, np.eye(3), atol=1e-6)

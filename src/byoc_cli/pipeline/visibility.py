@@ -34,7 +34,7 @@ if TYPE_CHECKING:  # numpy stays unloaded for the commands' --help, which reads 
 
 #: a passing result with more than this share of either cloud in the other's free space fails
 MAX_FREE_SPACE = 0.09
-#: a direction judged by fewer points than this says nothing
+#: a side (one cloud in the other's free space) judged on fewer points than this says nothing
 MIN_SEEN = 100
 
 
