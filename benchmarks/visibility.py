@@ -56,8 +56,11 @@ SAMPLE = FRAGMENTS / "sample" / "3DMatch"
 
 
 def rotation_deg(T: np.ndarray, G: np.ndarray) -> float:
-    R = T[:3, :3].T @ G[:3, :3]
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    import torch
+
+    from byoc_cli.geometry import rotation_error_deg
+
+    return float(rotation_error_deg(torch.from_numpy(T), torch.from_numpy(G)))
 
 
 def rmse(points: np.ndarray, T: np.ndarray, G: np.ndarray) -> float:

@@ -47,6 +47,15 @@ VISIBILITY = {
 }
 
 
+def _rerun_counts_it_below(tmp_path, record: dict) -> bool:
+    """Whether a rerun of ``register-batch`` counts ``record``, read back from a summary,
+    below a gate of 0.45."""
+    summary = tmp_path / "summary.jsonl"
+    summary.write_text(json.dumps(record) + "\n")
+    (earlier,) = recorded_results(summary).values()
+    return recorded_below(earlier, 0.45)
+
+
 def test_register_says_ambiguous_with_the_rivals_confidences():
     result = SimpleNamespace(turns=TURNS, init=None, path="global", confidence=0.91, check=None)
     result.visibility = None
@@ -66,10 +75,7 @@ def test_a_result_that_is_not_ambiguous_is_below_the_gate_as_before():
 def test_batch_names_why_and_a_rerun_counts_it_below_the_gate(tmp_path):
     record = {"status": "low_confidence", "confidence": 0.91, "turns": TURNS, "output": "a.txt"}
     assert init_reason(record).startswith("ambiguous:")
-    summary = tmp_path / "summary.jsonl"
-    summary.write_text(json.dumps(record) + "\n")
-    (earlier,) = recorded_results(summary).values()
-    assert recorded_below(earlier, 0.45)  # its confidence alone would pass
+    assert _rerun_counts_it_below(tmp_path, record)  # its confidence alone would pass
 
 
 def test_register_and_batch_say_where_the_two_seeds_put_the_source(tmp_path):
@@ -86,10 +92,7 @@ def test_register_and_batch_say_where_the_two_seeds_put_the_source(tmp_path):
     record = {"status": "low_confidence", "confidence": 0.495, "check": CHECK, "unit": "m"}
     record["output"] = "a.txt"
     assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
-    summary = tmp_path / "summary.jsonl"
-    summary.write_text(json.dumps(record) + "\n")
-    (earlier,) = recorded_results(summary).values()
-    assert recorded_below(earlier, 0.45)  # its confidence alone would pass
+    assert _rerun_counts_it_below(tmp_path, record)  # its confidence alone would pass
 
 
 def test_register_exits_3_with_both_poses_when_the_check_lands_elsewhere(tmp_path, monkeypatch):
@@ -144,10 +147,7 @@ def test_register_and_batch_say_what_lies_in_the_other_scans_free_space(tmp_path
     record = {"status": "low_confidence", "confidence": 0.631, "visibility": VISIBILITY}
     record["output"] = "a.txt"
     assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
-    summary = tmp_path / "summary.jsonl"
-    summary.write_text(json.dumps(record) + "\n")
-    (earlier,) = recorded_results(summary).values()
-    assert recorded_below(earlier, 0.45)  # its confidence alone would pass
+    assert _rerun_counts_it_below(tmp_path, record)  # its confidence alone would pass
     consistent = {**record, "visibility": {**VISIBILITY, "consistent": True}}
     assert init_reason(consistent) is None
 

@@ -70,18 +70,15 @@ def free_space(
     import numpy as np
     import torch
 
+    from byoc_cli.geometry import apply_transform, invert_transform
     from byoc_cli.geometry.visibility import free_space_share
 
-    T = np.asarray(T, dtype=np.float64)
-    inverse = np.linalg.inv(T)
+    T = torch.from_numpy(np.asarray(T, dtype=np.float64))
     src = torch.from_numpy(np.ascontiguousarray(src_points, dtype=np.float64))
     tgt = torch.from_numpy(np.ascontiguousarray(tgt_points, dtype=np.float64))
-
-    def moved(points: torch.Tensor, M: np.ndarray) -> torch.Tensor:
-        return points @ torch.from_numpy(M[:3, :3]).T + torch.from_numpy(M[:3, 3])
-
-    src_share, src_seen = free_space_share(moved(src, T), tgt, voxel_size, **image)
-    tgt_share, tgt_seen = free_space_share(moved(tgt, inverse), src, voxel_size, **image)
+    src_share, src_seen = free_space_share(apply_transform(T, src), tgt, voxel_size, **image)
+    back = apply_transform(invert_transform(T), tgt)
+    tgt_share, tgt_seen = free_space_share(back, src, voxel_size, **image)
     sides = [(s, n) for s, n in ((src_share, src_seen), (tgt_share, tgt_seen)) if n >= MIN_SEEN]
     return {
         "source_in_target": src_share,
