@@ -1,7 +1,8 @@
-"""One small scene (a ground plane and a box) scanned two ways, exactly, in the sensor frame:
-by a spinning LiDAR (rings of returns, dense along each ring, sparse across) and by a depth
-camera (a pixel grid: even sampling). The same surfaces, two samplings: what tells a scan
-sampled along lines from one sampled evenly.
+"""Small scenes scanned exactly in the sensor frame. One (a ground plane and a box) scanned
+two ways: by a spinning LiDAR (rings of returns, dense along each ring, sparse across) and by
+a depth camera (a pixel grid: even sampling). The same surfaces, two samplings: what tells a
+scan sampled along lines from one sampled evenly. And a room scanned from inside by a
+terrestrial laser scanner (:func:`room_scan`), and a wall facing a sensor (:func:`wall`).
 
 The sensor is at ``(0, 0, HEIGHT)`` above the ground ``z = 0``; the box ``BOX`` stands on the
 ground in front of it (+x). Ranges are exact (ray casting by the slab method).
@@ -51,3 +52,28 @@ def camera_scan(width: int = 160, height: int = 120, focal: float = 100.0):
     u, v = np.meshgrid(np.arange(width) + 0.5 - width / 2, np.arange(height) + 0.5 - height / 2)
     d = np.stack([np.full(u.size, focal), -u.ravel(), -v.ravel() - 0.3 * focal], axis=1)
     return _cast(d / np.linalg.norm(d, axis=1, keepdims=True))
+
+
+#: (min corner, max corner) of the room of :func:`room_scan`, around its scanner at the origin
+ROOM = (np.array([-2.0, -3.0, -1.5]), np.array([5.0, 2.0, 1.3]))
+
+
+def room_scan(step_deg: float = 1.0) -> np.ndarray:
+    """``(N, 3)`` a terrestrial laser scanner's returns from the inside of the empty box
+    :data:`ROOM`, at the origin: one ray per ``step_deg`` of azimuth and elevation (-80 to
+    +80 deg), so that the points crowd near the scanner as a laser scan's do."""
+    elevation = np.radians(np.arange(-80.0, 80.0 + step_deg / 2, step_deg))
+    azimuth = np.radians(np.arange(0.0, 360.0, step_deg))
+    E, A = np.meshgrid(elevation, azimuth, indexing="ij")
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, ROOM[1] / d, np.where(d < 0, ROOM[0] / d, np.inf)).min(axis=1)
+    return d * t[:, None]
+
+
+def wall(z: float = 3.0, half: float = 1.0, step: float = 0.02) -> np.ndarray:
+    """``(N, 3)`` a square wall of side ``2 half`` facing a sensor at the origin, at distance
+    ``z`` along +z, sampled on a grid of ``step``."""
+    ticks = np.arange(-half, half + step / 2, step)
+    x, y = np.meshgrid(ticks, ticks, indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1)

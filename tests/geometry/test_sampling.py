@@ -15,14 +15,16 @@ from byoc_cli.geometry.sampling import (
     STRAY_RADII,
     _first_per_voxel,
     cloud_radius,
+    even_radius,
     linear_share,
     local_frame,
     nearest_spacing,
     rough_share,
     spread,
+    surround_share,
 )
 from byoc_cli.geometry.voxel import voxelize
-from tests._rings import camera_scan, ring_scan
+from tests._rings import camera_scan, ring_scan, room_scan
 
 
 def _brute_spacing(points: np.ndarray) -> float:
@@ -96,10 +98,35 @@ def test_radius_ignores_a_few_far_points():
     )
 
 
+def test_the_even_radius_of_a_laser_scanned_room_is_the_room_not_where_its_points_crowd():
+    room = room_scan()  # 7 x 5 x 2.8 m, scanned from inside: dense near the scanner
+    assert even_radius(room) > 1.3 * cloud_radius(room)
+    assert 2.5 < even_radius(room) < 3.2  # the box's own median distance from its centre
+    surface = _surface(20_000, 4)  # sampled evenly: the same both ways
+    assert even_radius(surface) == pytest.approx(cloud_radius(surface), rel=0.05)
+
+
+@pytest.mark.parametrize("factor", [1e-3, 1.0, 1e3])
+def test_the_even_radius_does_not_depend_on_the_unit_or_on_strays_far_away(factor):
+    room = room_scan(2.0)
+    strays = np.concatenate([room, np.full((3, 3), 1e6)])
+    assert even_radius(room * factor) == pytest.approx(even_radius(room) * factor, rel=1e-9)
+    assert even_radius(strays) == pytest.approx(even_radius(room), rel=0.02)
+    assert even_radius(torch.from_numpy(room)) == even_radius(room)
+
+
+def test_a_panorama_surrounds_its_origin_and_a_camera_frame_does_not():
+    room = room_scan()
+    assert surround_share(room) > 0.9 and surround_share(camera_scan()) < 0.1
+    assert surround_share(room + np.array([20.0, 0.0, 0.0])) < 0.1  # seen from elsewhere
+    assert surround_share(np.zeros((0, 3))) == 0.0
+
+
 def test_degenerate_sizes():
     assert nearest_spacing(torch.zeros(0, 3)) == 0.0
     assert nearest_spacing(torch.zeros(5, 3)) == 0.0  # one distinct point
     assert cloud_radius(torch.zeros(1, 3)) == 0.0
+    assert even_radius(torch.zeros(1, 3)) == 0.0 and even_radius(np.zeros((5, 3))) == 0.0
     with pytest.raises(ShapeError):
         nearest_spacing(torch.zeros(4, 2))
 

@@ -20,9 +20,10 @@ from byoc_cli.pipeline.scale import (
     choose_voxel,
     measure,
     scan_line_voxel,
+    size_radius,
     trained_scale,
 )
-from tests._rings import camera_scan, ring_scan
+from tests._rings import camera_scan, ring_scan, room_scan
 
 REF = 0.025
 
@@ -172,3 +173,37 @@ def test_a_line_voxel_below_the_chosen_voxel_changes_nothing():
     fine_lines = scale._replace(line_voxel=0.01)
     assert choose_voxel((fine_lines,), REF).voxel_size == REF
     assert choose_voxel((fine_lines,), REF).scan_lines
+
+
+def test_fpfh_sizes_a_laser_scanned_room_by_its_even_radius():
+    """Raw radius 1.4 (in the trained range: the points crowd near the scanner), 2.4 thinned
+    evenly: FPFH's voxel scales with 2.4, the learned features' stays."""
+    room = (CloudScale(200_000, 0.005, 1.4, even_radius=2.4),) * 2
+    assert choose_voxel(room, 0.05).voxel_size == 0.05
+    fpfh = choose_voxel(room, 0.05, even=True)
+    assert fpfh.voxel_size == pytest.approx(0.05 * 2.4 / CENTRE_RADIUS)
+    assert fpfh.refine_voxel == 0.05  # the refinement keeps the voxel of the raw radius
+    assert "radius 1.4 is in the trained range" in fpfh.reason
+    assert "features at 2.4, the radius thinned evenly" in fpfh.reason
+    assert size_radius(room) == 2.4
+
+
+@pytest.mark.parametrize(
+    ("radius", "even", "size"),
+    [(1.0, 1.1, 1.0), (1.0, None, 1.0), (0.05, 0.06, 0.05), (2.0, 1.9, 2.0), (2.0, 2.5, 2.5)],
+)
+def test_only_an_even_radius_above_the_trained_range_and_the_raw_one_sizes_fpfh(radius, even, size):
+    """Fragments and depth frames (in the range both ways) and objects (scaled down) keep
+    their radius; a LiDAR scan larger either way takes the larger."""
+    scales = (CloudScale(10_000, 0.001, radius, even_radius=even),)
+    assert size_radius(scales) == size
+    assert (
+        choose_voxel(scales, REF, even=True).voxel_size
+        == choose_voxel((scales[0]._replace(radius=size),), REF).voxel_size
+    )
+
+
+def test_measure_reads_the_even_radius_of_a_panorama_only():
+    room = measure(torch.from_numpy(room_scan()), lines=False)
+    assert room.even_radius > 1.3 * room.radius
+    assert measure(torch.from_numpy(camera_scan()), lines=False).even_radius is None

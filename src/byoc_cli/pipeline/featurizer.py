@@ -106,10 +106,12 @@ class Featurizer:
         self._scales.remember(points, scale)
 
     def voxel_for(self, *scales: CloudScale) -> VoxelChoice:
-        """The auto voxel of clouds measured with :meth:`measure` (a pair shares one)."""
+        """The auto voxel of clouds measured with :meth:`measure` (a pair shares one; FPFH
+        sizes clouds whose points crowd near a scanner by their even radius:
+        :func:`~byoc_cli.pipeline.scale.size_radius`)."""
         from byoc_cli.pipeline.scale import choose_voxel
 
-        return choose_voxel(tuple(scales), self.voxel_size)
+        return choose_voxel(tuple(scales), self.voxel_size, even=self.features == "fpfh")
 
     def choose_voxel(self, *clouds: np.ndarray, label: str = "cloud", labels=None) -> VoxelChoice:
         """The auto voxel of one or two clouds ``(N, 3)`` (a pair shares one); ``label`` (one
