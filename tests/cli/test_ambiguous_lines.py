@@ -1,7 +1,8 @@
 """What `register` and `register-batch` say of an ambiguous result (`--turns`: another turned
 try fits about as well elsewhere; the check with another seed ends elsewhere) and of one that
-sees through the other scan (the visibility check): one line naming it, and a rerun counts
-it below the gate."""
+sees through the other scan (the visibility check), or whose source turned about the up axis
+fits as well (the structure check): one line naming it, and a rerun counts it below the
+gate."""
 
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ def _rerun_counts_it_below(tmp_path, record: dict) -> bool:
 
 def test_register_says_ambiguous_with_the_rivals_confidences():
     result = SimpleNamespace(turns=TURNS, init=None, path="global", confidence=0.91, check=None)
-    result.visibility = None
+    result.visibility, result.cues = None, {}
     line = failure_line(result, 0.45, "m")
     assert line.startswith("byoc: ambiguous: the source fits at more than one pose")
     assert "0.910 turned 120 deg, 0.880 turned 240 deg" in line and "\n" not in line
@@ -69,6 +70,7 @@ def test_a_result_that_is_not_ambiguous_is_below_the_gate_as_before():
     result.check = {**CHECK, "ambiguous": False, "alternatives": []}
     result.confidence = 0.3
     result.visibility = {**VISIBILITY, "consistent": True}
+    result.cues = {"structure_rival": -0.3}
     assert "below --min-confidence 0.45" in failure_line(result, 0.45, "m")
 
 
@@ -150,6 +152,22 @@ def test_register_and_batch_say_what_lies_in_the_other_scans_free_space(tmp_path
     assert _rerun_counts_it_below(tmp_path, record)  # its confidence alone would pass
     consistent = {**record, "visibility": {**VISIBILITY, "consistent": True}}
     assert init_reason(consistent) is None
+
+
+def test_register_and_batch_say_a_turn_of_the_source_fits_as_well(tmp_path):
+    result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.1, check=None)
+    result.visibility, result.cues = None, {"fitness": 0.8, "structure_rival": -0.03}
+    line = failure_line(result, 0.45, "m")
+    assert line == (
+        "byoc: ambiguous: the source turned about the up axis fits what stands in the scene as "
+        "well as under T (clutter fit -0.03 against T's; -0.05 at most): T is likely wrong "
+        "(written all the same)"
+    )
+    record = {"status": "low_confidence", "confidence": 0.1, "cues": result.cues}
+    record["output"] = "a.txt"
+    assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
+    assert init_reason({**record, "cues": {"structure_rival": -0.2}}) is None
+    assert init_reason({**record, "cues": {"structure_rival": float("nan")}}) is None
 
 
 def test_register_exits_3_when_the_source_lies_in_the_targets_free_space(tmp_path, monkeypatch):

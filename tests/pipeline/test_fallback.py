@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from byoc_cli.pipeline.registrar import Registrar
+from tests._rings import room_scan
 from tests.pipeline._clouds import cube, moved
 
 
@@ -21,6 +22,7 @@ def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
     note = both.fallback
     assert note["features"] == "fpfh" and note["learned_confidence"] == plain.confidence
     assert note["confidence"] is not None and note["seconds"] > 0
+    assert note["voxel_choice"]["voxel_size"] > 0  # FPFH's own choice, said apart
     assert both.confidence == max(plain.confidence, note["confidence"])
     assert both.features == ("fpfh" if note["used"] else "byoc")
     assert note["used"] == (note["confidence"] > plain.confidence)
@@ -68,3 +70,36 @@ def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monke
         assert result.fallback["confidence"] == alone.confidence
         if result.fallback["used"]:
             assert result.T_tgt_src.tobytes() == alone.T_tgt_src.tobytes()
+
+
+def test_fpfh_sizes_a_laser_scanned_room_by_the_room_and_the_learned_features_do_not():
+    """A scan from inside a room: its points crowd around the scanner. The learned features'
+    auto voxel reads its raw radius; FPFH's (the fallback's registrar, --features fpfh) the
+    radius of the room thinned evenly, larger."""
+    room = room_scan(0.5)
+    learned = Registrar(fallback="fpfh")
+    scale = learned.cloud_scale(room, "room")
+    assert scale.even_radius > 1.3 * scale.radius
+    fpfh = Registrar("fpfh")
+    assert learned.voxel_for(scale, scale).voxel_size == pytest.approx(
+        learned.voxel_size * scale.radius
+    )
+    assert fpfh.voxel_for(scale, scale).voxel_size == pytest.approx(
+        fpfh.voxel_size * scale.even_radius
+    )
+
+
+def test_on_panoramas_larger_than_the_trained_range_fpfh_checks_its_result_against_turns():
+    from byoc_cli.pipeline.fallback import LARGE_SCANS, Fallback, changes_for
+    from byoc_cli.pipeline.scale import CloudScale
+
+    room = CloudScale(200_000, 0.005, 1.4, even_radius=2.4)  # crowded near its scanner
+    fragment = CloudScale(200_000, 0.005, 1.2, even_radius=1.25)
+    hall = CloudScale(400_000, 0.01, 12.0, even_radius=15.0)  # a panorama of a large hall
+    street = CloudScale(40_000, 0.05, 12.0)  # LiDAR: no panorama, no even radius
+    small = CloudScale(20_000, 0.0005, 0.05, even_radius=0.06)
+    assert changes_for([room, room]) == changes_for([hall, hall]) == LARGE_SCANS
+    assert changes_for([fragment, fragment]) == changes_for([small, small]) == ()
+    assert changes_for([street, street]) == ()
+    assert Fallback("auto").registrar(LARGE_SCANS).recipe.matching.turns
+    assert not Fallback("auto").registrar().recipe.matching.turns

@@ -14,7 +14,7 @@ from byoc_cli.pipeline.fallback import Fallback
 from byoc_cli.pipeline.recipe import preset
 from byoc_cli.pipeline.register import RegisterConfig, _Timer, register_config
 from byoc_cli.pipeline.solve import Solver
-from byoc_cli.pipeline.structure_check import RIVAL_GAIN, VETOED_CONFIDENCE, structure_rival
+from byoc_cli.pipeline.structure_check import RIVAL_MARGIN, VETOED_CONFIDENCE, structure_rival
 from byoc_cli.pipeline.verdict import Verdict
 from tests.pipeline._rooms import SEEN_TWICE, seen_twice, turn_z
 
@@ -35,7 +35,7 @@ def _rival(clouds, T: np.ndarray) -> float:
 
 def test_the_truth_has_no_rival_and_a_half_turn_has_one(clouds):
     assert _rival(clouds, TRUTH) < -0.3
-    assert _rival(clouds, turn_z(180.0) @ TRUTH) > RIVAL_GAIN
+    assert _rival(clouds, turn_z(180.0) @ TRUTH) > 0.2
 
 
 def _solver(clouds, config: RegisterConfig) -> Solver:
@@ -52,8 +52,27 @@ def test_the_solver_caps_a_result_with_a_rival_and_keeps_one_without(clouds):
     assert kept.confidence == 0.9 and kept.cues["structure_rival"] < 0
     vetoed = solver.check_structure(torch.from_numpy(turn_z(180.0) @ TRUTH), verdict)
     assert vetoed.confidence == VETOED_CONFIDENCE
-    assert vetoed.cues["structure_rival"] > RIVAL_GAIN
+    assert vetoed.cues["structure_rival"] > 0.2
     assert vetoed.cues["fitness"] == 0.9
+
+
+@pytest.mark.parametrize(
+    ("rival", "capped"), [(-0.3, False), (-RIVAL_MARGIN - 0.01, False), (-0.03, True), (0.1, True)]
+)
+def test_a_turn_that_fits_the_clutter_as_well_makes_the_result_ambiguous(
+    clouds, monkeypatch, rival, capped
+):
+    """A rival within RIVAL_MARGIN of the result (a room that looks the same turned) caps it
+    as a better one does; NaN (no large planes) does not."""
+    import byoc_cli.pipeline.solve as solve
+
+    monkeypatch.setattr(solve, "structure_rival", lambda *a: rival)
+    verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
+    got = _solver(clouds, RegisterConfig()).check_structure(torch.eye(4), verdict)
+    assert got.confidence == (VETOED_CONFIDENCE if capped else 0.9)
+    monkeypatch.setattr(solve, "structure_rival", lambda *a: float("nan"))
+    unknown = _solver(clouds, RegisterConfig()).check_structure(torch.eye(4), verdict)
+    assert unknown.confidence == 0.9 and np.isnan(unknown.cues["structure_rival"])
 
 
 def test_a_cloud_without_large_planes_gives_no_rival():
@@ -91,7 +110,7 @@ def test_with_turns_the_solver_checks_and_caps_a_half_turn(clouds):
     assert register_config(preset("byoc").changed(matching__turns=True)).structure_check
     unrefined, unchecked, _ = _solve_half_turn(clouds, turns=False)
     refinement, verdict, timings = _solve_half_turn(clouds, turns=True)
-    assert verdict.cues["structure_rival"] > RIVAL_GAIN and "structure" in timings
+    assert verdict.cues["structure_rival"] > 0.2 and "structure" in timings
     assert torch.equal(refinement.T_tgt_src, unrefined.T_tgt_src)  # only the confidence moves
     assert verdict.confidence == min(unchecked.confidence, VETOED_CONFIDENCE)
 

@@ -74,9 +74,10 @@ def recorded_below(recorded: dict, gate: float) -> bool:
 
 def init_reason(record: dict) -> str | None:
     """Why a pair did not pass other than its confidence: it is ambiguous (a turned try, or
-    the check with another seed, fits elsewhere), or it was registered from its initial pose
-    and left the trust region; None: neither."""
-    from byoc_cli.cli.pairwise import ambiguity, check_ambiguity, seen_through
+    the check with another seed, fits elsewhere, or the source turned about the up axis fits
+    as well), inconsistent with what the scans saw, or it was registered from its initial
+    pose and left the trust region; None: none of these."""
+    from byoc_cli.cli.pairwise import ambiguity, check_ambiguity, seen_through, turned_rival
 
     turns = record.get("turns") or {}
     if turns.get("ambiguous"):
@@ -87,6 +88,9 @@ def init_reason(record: dict) -> str | None:
     visibility = record.get("visibility") or {}
     if not visibility.get("consistent", True):
         return seen_through(visibility)
+    turned = turned_rival(record.get("cues"))
+    if turned is not None:
+        return turned
     init = record.get("init") or {}
     if not init:
         return None

@@ -345,6 +345,21 @@ def ambiguity(turns: dict) -> str:
     return f"ambiguous: the source fits at more than one pose (confidences {shown})"
 
 
+def turned_rival(cues: dict | None) -> str | None:
+    """``ambiguous: ...`` of a result whose structure check
+    (:mod:`byoc_cli.pipeline.structure_check`) found a turn about the up axis that fits what
+    is not floor, ceiling or wall as well as the result; None otherwise."""
+    from byoc_cli.pipeline.structure_check import RIVAL_MARGIN
+
+    rival = (cues or {}).get("structure_rival")
+    if not isinstance(rival, float) or not rival > -RIVAL_MARGIN:
+        return None
+    return (
+        "ambiguous: the source turned about the up axis fits what stands in the scene as well "
+        f"as under T (clutter fit {rival:+.2f} against T's; {-RIVAL_MARGIN:+.2f} at most)"
+    )
+
+
 def seen_through(visibility: dict) -> str:
     """``inconsistent: ...`` of a result's ``visibility`` report
     (:mod:`byoc_cli.pipeline.visibility`): how much of each cloud lies in the other's free

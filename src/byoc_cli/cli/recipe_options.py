@@ -156,8 +156,8 @@ def _options() -> dict[str, Callable]:
             "features again turned by 60 to 300 deg (every 60) about its up axis and keep the "
             "most confident result; a result that fits as well turned elsewhere exits 3 as "
             "ambiguous. With any features, a result that passes is turned 90, 180 and 270 deg "
-            "about the up axis, and its confidence is capped at 0.1 when a turn fits what is not "
-            "floor, ceiling or wall better. For scans turned far apart about the vertical "
+            "about the up axis, and it exits 3 as ambiguous when a turn fits what is not floor, "
+            "ceiling or wall as well. For scans turned far apart about the vertical "
             "(terrestrial scanner stations, turntables): docs/registering.md, Turned scans. "
             f"{_default('matching.turns')}",
         ),

@@ -46,6 +46,7 @@ from byoc_cli.cli.pairwise import (
     registrar,
     registration_report,
     seen_through,
+    turned_rival,
 )
 from byoc_cli.cli.recipe_options import PAIRWISE, build_recipe, recipe_options
 
@@ -251,6 +252,9 @@ def failure_line(result, min_confidence: float, unit: str | None) -> str:
         return f"byoc: {check_ambiguity(result.check, unit)}: {written}"
     if not (result.visibility or {}).get("consistent", True):
         return f"byoc: {seen_through(result.visibility)}: {written}"
+    turned = turned_rival(result.cues)
+    if turned is not None:
+        return f"byoc: {turned}: {written}"
     if init.get("check") == "disagrees":
         return (
             f"byoc: the global result lies {_moved(init['correction'], unit)} from --init, "

@@ -23,7 +23,7 @@ from byoc_cli.errors import RegistrationError
 from byoc_cli.fitting import randomized_procrustes, ransac, spatial_compatibility
 from byoc_cli.pipeline.refine import Refinement, measure_fit, refine_multiscale
 from byoc_cli.pipeline.restarts import restart_refinement
-from byoc_cli.pipeline.structure_check import RIVAL_GAIN, VETOED_CONFIDENCE, structure_rival
+from byoc_cli.pipeline.structure_check import RIVAL_MARGIN, VETOED_CONFIDENCE, structure_rival
 from byoc_cli.pipeline.verdict import NO_RESTARTS, Judge, Verdict
 
 if TYPE_CHECKING:
@@ -96,7 +96,7 @@ class Solver:
     def check_structure(self, T: torch.Tensor, verdict: Verdict) -> Verdict:
         """``verdict`` with the cue ``structure_rival`` (:func:`structure_rival`), its
         confidence capped at :data:`VETOED_CONFIDENCE` when a turned rival fits the clutter
-        better by :data:`RIVAL_GAIN`."""
+        as well, less well by at most :data:`RIVAL_MARGIN` (the result is ambiguous)."""
         rival = structure_rival(
             self.src.points,
             self.tgt.points,
@@ -108,7 +108,7 @@ class Solver:
         )
         cues = {**verdict.cues, "structure_rival": rival}
         confidence = verdict.confidence
-        if rival > RIVAL_GAIN:
+        if rival > -RIVAL_MARGIN:
             confidence = min(confidence, VETOED_CONFIDENCE)
         return verdict._replace(cues=cues, confidence=confidence)
 
