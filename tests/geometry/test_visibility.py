@@ -17,18 +17,18 @@ from byoc_cli.geometry.visibility import (
     MARGIN_VOXELS,
     cube_bins,
     free_space_share,
+    hidden_share,
     in_free_space,
     range_image,
 )
+from tests._rings import room_scan, wall
 
 VOXEL = 0.025
 
 
 def _wall(z: float = 3.0, half: float = 1.0, step: float = 0.02) -> torch.Tensor:
-    """``(N, 3)`` a square wall facing the sensor at distance ``z`` along +z."""
-    ticks = torch.arange(-half, half + step / 2, step, dtype=torch.float64)
-    x, y = torch.meshgrid(ticks, ticks, indexing="ij")
-    return torch.stack([x.ravel(), y.ravel(), torch.full_like(x.ravel(), z)], dim=1)
+    """``(N, 3)`` :func:`tests._rings.wall` as a tensor."""
+    return torch.from_numpy(wall(z, half, step))
 
 
 def test_each_axis_has_its_own_face_and_the_range_is_the_distance():
@@ -129,3 +129,20 @@ def test_wrong_shapes_and_voxels_are_refused():
         in_free_space(wall, range_image(wall), -1.0)
     with pytest.raises(ShapeError):
         in_free_space(wall, range_image(wall), math.nan)
+
+
+def test_a_scan_hides_almost_nothing_of_itself_from_its_scanner_and_much_from_outside():
+    room = torch.from_numpy(room_scan())
+    assert hidden_share(room, 0.05) < 0.01
+    assert hidden_share(room + torch.tensor([6.0, 0.0, 0.0], dtype=room.dtype), 0.05) > 0.5
+    layered = torch.cat([_wall(3.0), _wall(5.0)])  # the far wall behind the near one
+    assert hidden_share(layered, VOXEL) == pytest.approx(0.5, abs=0.01)
+
+
+def test_hidden_share_of_degenerate_clouds():
+    assert hidden_share(torch.zeros(0, 3, dtype=torch.float64), VOXEL) == 0.0
+    assert hidden_share(torch.zeros(4, 3, dtype=torch.float64), VOXEL) == 0.0  # at the sensor
+    with pytest.raises(ShapeError):
+        hidden_share(torch.zeros(4, 2), VOXEL)
+    with pytest.raises(ShapeError):
+        hidden_share(_wall(), 0.0)

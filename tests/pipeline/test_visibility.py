@@ -21,6 +21,7 @@ from byoc_cli.pipeline.visibility import (
     needs_visibility,
     with_visibility,
 )
+from tests._rings import wall as _wall
 
 VOXEL = 0.025
 
@@ -32,12 +33,6 @@ def _registration(tx: float = 0.0, passed: bool = True, path: str = "global") ->
         T, 0.9 if passed else 0.1, passed, 10, 20, 0.5, 0.3, 100, 100, 0.05, VOXEL, "byoc",
         "ransac", "multiscale", 1000, 100, 0, None, {"fit": 0.1}, path=path,
     )  # fmt: skip
-
-
-def _wall(z: float = 3.0, half: float = 1.0, step: float = 0.02) -> np.ndarray:
-    ticks = np.arange(-half, half + step / 2, step)
-    x, y = np.meshgrid(ticks, ticks, indexing="ij")
-    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1)
 
 
 def _features(points: np.ndarray, voxel_size: float = VOXEL, origin=None, scale: float = 1.0):
@@ -127,10 +122,27 @@ def test_the_registrar_checks_its_result_where_the_features_see_their_own_voxel(
     off = Registrar(fallback="none", recipe=preset("byoc").changed(gate__visibility=False))
     got = off.match(_features(near.points, own), _features(far.points, own), seed=0)
     assert got.passed and got.visibility is None
-    scaled = _features(near.points, 2.1 * own), _features(far.points, 2.1 * own)
-    assert registrar.match(*scaled, seed=0).visibility is None  # an auto voxel that scaled
+    small = _features(near.points, 0.5 * own), _features(far.points, 0.5 * own)
+    assert registrar.match(*small, seed=0).visibility is None  # brought up to scale: objects
     moved = _features(near.points, own, origin=np.array([1e6, 0.0, 0.0]))
     assert registrar.match(moved, _features(far.points, own), seed=0).visibility is None
+
+
+def test_at_a_coarser_voxel_only_clouds_seen_from_their_origin_are_checked(monkeypatch):
+    """Scans larger than the features' own (rooms, LiDAR): checked when each cloud hides at
+    most MAX_HIDDEN of itself seen from its origin, as a scan from there does."""
+    monkeypatch.setattr(Registrar, "match_alone", _match_alone)
+    registrar = Registrar(fallback="none")
+    coarse = 2.1 * registrar.voxel_size
+    wall = _wall(3.0)
+    near = _features(wall + np.array([0.0, 0.0, -1.0]), coarse)
+    got = registrar.match(near, _features(wall, coarse), seed=0)
+    assert not got.passed and got.visibility["source_in_target"] == 1.0
+    assert got.visibility["hidden"] == [0.0, 0.0]
+    assert got.visibility["max_hidden"] == visibility.MAX_HIDDEN
+    # a target whose far wall lies behind its near one: not scanned from its origin
+    layered = _features(np.concatenate([wall, _wall(5.0)]), coarse)
+    assert registrar.match(near, layered, seed=0).visibility is None
 
 
 def test_the_presets_check_the_learned_features_only():

@@ -132,3 +132,27 @@ def free_space_share(
     free = in_free_space(points, range_image(sensor_points, **image), voxel_size, bins)
     seen = int(free.seen.sum())
     return (float(free.inside.sum()) / seen if seen else 0.0), seen
+
+
+def hidden_share(points: torch.Tensor, voxel_size: float, bins: int = FACE_BINS) -> float:
+    """The share of ``points (N, 3)`` that lie behind others of them as seen from the origin:
+    farther than the nearest point of their own direction bin (:func:`cube_bins`, no bins
+    around) by more than the margin of :func:`in_free_space`. Points within
+    :data:`MIN_RANGE_VOXELS` voxels of the origin are left out; 0.0 when none is left.
+
+    A scan seen from its own sensor hides little of itself, only the points of a far surface
+    that share a bin with the edge of a near one; seen from elsewhere, the near surfaces hide
+    what the sensor saw beside them (on the simulated rooms of docs/rooms.md, 0.3 % to 3.6 %
+    from the scanner, 40 % to 81 % from 20 m away).
+    """
+    _check(points, "points")
+    if not voxel_size > 0:
+        raise ShapeError(f"voxel_size must be > 0, got {voxel_size}")
+    index, rng = cube_bins(points, bins)
+    far = rng > MIN_RANGE_VOXELS * voxel_size
+    index, rng = index[far], rng[far]
+    if not len(rng):
+        return 0.0
+    own = range_image(points[far], bins, grow=0)
+    behind = rng > own[index] * (1 + MARGIN_SHARE) + MARGIN_VOXELS * voxel_size
+    return float(behind.sum()) / len(rng)
