@@ -21,7 +21,6 @@ import numpy as np
 
 from byoc_cli.errors import RegistrationError
 from byoc_cli.pipeline.results import Features, Registration
-from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius
 
 #: the fallback's recipe changes on scans larger than the trained range (FPFH's size): the
 #: structure check of its result (``matching.turns``: FPFH tries no turned sources)
@@ -127,6 +126,8 @@ def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
     panoramas (a cloud with an ``even_radius``: laser scans of rooms in their scanner's frame)
     that FPFH sizes above the trained range (:func:`~byoc_cli.pipeline.scale.size_radius`),
     none otherwise (the structure check was measured on rooms)."""
+    from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius  # torch: not on import
+
     panorama = any(s.even_radius is not None for s in scales)
     return LARGE_SCANS if panorama and size_radius(tuple(scales)) > TRAINED_RADIUS[1] else ()
 
