@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from byoc_cli.errors import ShapeError
+from byoc_cli.geometry.visibility import cube_bins
 
 #: query points whose nearest neighbour is measured (a seeded random subset)
 SPACING_SAMPLES = 2048
@@ -123,8 +124,6 @@ def surround_share(points: np.ndarray | torch.Tensor) -> float:
     which ``points (N, 3)`` lie: a terrestrial laser scanner's panorama in its own frame 0.85
     to 0.97 (the simulated rooms), a spinning LiDAR's 0.3, a depth frame's field of view
     0.05, a cloud far from its origin less (0.0 for no point)."""
-    from byoc_cli.geometry.visibility import cube_bins
-
     _check(points)
     pts = points if isinstance(points, torch.Tensor) else torch.from_numpy(np.asarray(points))
     pts = pts[:: max(1, math.ceil(len(pts) / EVEN_SAMPLES))].to(torch.float64)

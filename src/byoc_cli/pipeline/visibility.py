@@ -42,8 +42,8 @@ MAX_FREE_SPACE = 0.09
 MIN_SEEN = 100
 #: at an auto voxel coarser than the features' own, the check runs only on clouds that each
 #: hide at most this share of themselves seen from their origin
-#: (:func:`~byoc_cli.geometry.visibility.hidden_share`; simulated rooms from their scanners
-#: 0.003 to 0.035, from 1 m beside them up to 0.26, from 5 m away 0.42 and more)
+#: (:func:`~byoc_cli.geometry.visibility.hidden_share`; the simulated rooms from their
+#: scanners 0.003 to 0.036, from 1 m beside them up to 0.26, from 20 m away 0.40 and more)
 MAX_HIDDEN = 0.06
 
 
