@@ -48,6 +48,18 @@ VISIBILITY = {
 }
 
 
+def _result(confidence: float, **fields) -> SimpleNamespace:
+    """A stand-in of a global-path ``Registration`` with ``confidence`` and ``fields`` (the
+    reports ``turns``, ``check``, ``visibility``, ``cues``), none by default."""
+    base = {"turns": None, "init": None, "path": "global", "check": None, "visibility": None}
+    return SimpleNamespace(**{**base, "cues": {}, "confidence": confidence, **fields})
+
+
+def _batch_says(line: str) -> str:
+    """What ``register-batch`` names of a pair whose ``register`` line is ``line``."""
+    return line.removeprefix("byoc: ").split(": T is")[0]
+
+
 def _rerun_counts_it_below(tmp_path, record: dict) -> bool:
     """Whether a rerun of ``register-batch`` counts ``record``, read back from a summary,
     below a gate of 0.45."""
@@ -58,18 +70,19 @@ def _rerun_counts_it_below(tmp_path, record: dict) -> bool:
 
 
 def test_register_says_ambiguous_with_the_rivals_confidences():
-    result = SimpleNamespace(turns=TURNS, init=None, path="global", confidence=0.91, check=None)
-    result.visibility, result.cues = None, {}
+    result = _result(0.91, turns=TURNS)
     line = failure_line(result, 0.45, "m")
     assert line.startswith("byoc: ambiguous: the source fits at more than one pose")
     assert "0.910 turned 120 deg, 0.880 turned 240 deg" in line and "\n" not in line
 
 
 def test_a_result_that_is_not_ambiguous_is_below_the_gate_as_before():
-    result = SimpleNamespace(turns={**TURNS, "ambiguous": False}, init=None, path="global")
-    result.check = {**CHECK, "ambiguous": False, "alternatives": []}
-    result.confidence = 0.3
-    result.visibility = {**VISIBILITY, "consistent": True}
+    result = _result(
+        0.3,
+        turns={**TURNS, "ambiguous": False},
+        check={**CHECK, "ambiguous": False, "alternatives": []},
+        visibility={**VISIBILITY, "consistent": True},
+    )
     result.cues = {"structure_rival": -0.3}
     assert "below --min-confidence 0.45" in failure_line(result, 0.45, "m")
 
@@ -81,8 +94,7 @@ def test_batch_names_why_and_a_rerun_counts_it_below_the_gate(tmp_path):
 
 
 def test_register_and_batch_say_where_the_two_seeds_put_the_source(tmp_path):
-    result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.495, check=CHECK)
-    result.visibility = None
+    result = _result(0.495, check=CHECK)
     line = failure_line(result, 0.45, "m")
     assert line == (
         "byoc: ambiguous: seeds 0 and 1 fit the source 14.6 deg / 1.14 m apart (confidences "
@@ -93,7 +105,7 @@ def test_register_and_batch_say_where_the_two_seeds_put_the_source(tmp_path):
     assert "14.6 deg / 22.8 input units apart" in failure_line(unknown_unit, 0.45, None)
     record = {"status": "low_confidence", "confidence": 0.495, "check": CHECK, "unit": "m"}
     record["output"] = "a.txt"
-    assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
+    assert init_reason(record) == _batch_says(line)
     assert _rerun_counts_it_below(tmp_path, record)  # its confidence alone would pass
 
 
@@ -138,8 +150,7 @@ def test_register_exits_3_with_both_poses_when_the_check_lands_elsewhere(tmp_pat
 
 
 def test_register_and_batch_say_what_lies_in_the_other_scans_free_space(tmp_path):
-    result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.631, check=None)
-    result.visibility = VISIBILITY
+    result = _result(0.631, visibility=VISIBILITY)
     line = failure_line(result, 0.45, "m")
     assert line == (
         "byoc: inconsistent: under T 1% of the source lies in space the target's sensor saw "
@@ -148,15 +159,15 @@ def test_register_and_batch_say_what_lies_in_the_other_scans_free_space(tmp_path
     )
     record = {"status": "low_confidence", "confidence": 0.631, "visibility": VISIBILITY}
     record["output"] = "a.txt"
-    assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
+    assert init_reason(record) == _batch_says(line)
     assert _rerun_counts_it_below(tmp_path, record)  # its confidence alone would pass
     consistent = {**record, "visibility": {**VISIBILITY, "consistent": True}}
     assert init_reason(consistent) is None
 
 
 def test_register_and_batch_say_a_turn_of_the_source_fits_as_well(tmp_path):
-    result = SimpleNamespace(turns=None, init=None, path="global", confidence=0.1, check=None)
-    result.visibility, result.cues = None, {"fitness": 0.8, "structure_rival": -0.03}
+    result = _result(0.1)
+    result.cues = {"fitness": 0.8, "structure_rival": -0.03}
     line = failure_line(result, 0.45, "m")
     assert line == (
         "byoc: ambiguous: the source turned about the up axis fits what stands in the scene as "
@@ -165,7 +176,7 @@ def test_register_and_batch_say_a_turn_of_the_source_fits_as_well(tmp_path):
     )
     record = {"status": "low_confidence", "confidence": 0.1, "cues": result.cues}
     record["output"] = "a.txt"
-    assert init_reason(record) == line.removeprefix("byoc: ").split(": T is")[0]
+    assert init_reason(record) == _batch_says(line)
     assert init_reason({**record, "cues": {"structure_rival": -0.2}}) is None
     assert init_reason({**record, "cues": {"structure_rival": float("nan")}}) is None
 

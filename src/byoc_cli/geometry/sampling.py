@@ -94,18 +94,17 @@ def _distances(columns: list[np.ndarray], centre: np.ndarray) -> np.ndarray:
         return np.sqrt(squared, out=squared)
 
 
-def even_radius(points: np.ndarray | torch.Tensor, spread_: Spread | None = None) -> float:
+def even_radius(points: np.ndarray | torch.Tensor) -> float:
     """The radius (:func:`cloud_radius`) of ``points (N, 3)`` thinned to one point per cube of
     :data:`EVEN_CELL` of their radius: the size of the scene rather than of where the points
     crowd. A laser scanner's points crowd around it (the density falls with the square of the
     range), so the simulated rooms of 5 to 9 m of docs/rooms.md have radii of 1.1 to 2.6 m
-    and, thinned evenly, 2.0 to 3.5 m; a fused fragment reads about the same both ways.
-    ``spread_``: the points' :func:`spread` when it is known. 0.0 for fewer than 2 points or
-    no extent."""
+    and, thinned evenly, 2.0 to 3.5 m; a fused fragment reads about the same both ways. 0.0
+    for fewer than 2 points or no extent."""
     _check(points)
     pts = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else points
     pts = np.asarray(pts, dtype=np.float64)
-    centre, radius = spread(pts) if spread_ is None else spread_
+    centre, radius = spread(pts)
     if len(pts) < 2 or not 0.0 < radius < math.inf:
         return 0.0
     pts = pts[:: max(1, math.ceil(len(pts) / EVEN_SAMPLES))]

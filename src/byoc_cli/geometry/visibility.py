@@ -75,6 +75,13 @@ def cube_bins(points: torch.Tensor, bins: int = FACE_BINS) -> tuple[torch.Tensor
     return (face6 * bins + row) * bins + col, rng
 
 
+def _nearest_per_bin(index: torch.Tensor, rng: torch.Tensor, bins: int) -> torch.Tensor:
+    """``(6 * bins * bins,)`` the nearest of ranges ``rng (N,)`` in each bin of ``index
+    (N,)`` (:func:`cube_bins`); ``inf`` where a bin holds none."""
+    own = torch.full((6 * bins * bins,), torch.inf, dtype=rng.dtype)
+    return own.scatter_reduce_(0, index, rng, reduce="amin")
+
+
 def range_image(
     points: torch.Tensor, bins: int = FACE_BINS, grow: int = GROW_BINS, measured_only: bool = True
 ) -> torch.Tensor:
@@ -85,9 +92,7 @@ def range_image(
     Returns:
         ``(6 * bins * bins,)`` ranges, indexed as :func:`cube_bins`.
     """
-    index, rng = cube_bins(points, bins)
-    own = torch.full((6 * bins * bins,), torch.inf, dtype=points.dtype)
-    own.scatter_reduce_(0, index, rng, reduce="amin")
+    own = _nearest_per_bin(*cube_bins(points, bins), bins)
     if grow == 0:
         return own
     # a minimum filter: max-pooling of the negated ranges (the padding is ignored)
@@ -153,6 +158,6 @@ def hidden_share(points: torch.Tensor, voxel_size: float, bins: int = FACE_BINS)
     index, rng = index[far], rng[far]
     if not len(rng):
         return 0.0
-    own = range_image(points[far], bins, grow=0)
+    own = _nearest_per_bin(index, rng, bins)
     behind = rng > own[index] * (1 + MARGIN_SHARE) + MARGIN_VOXELS * voxel_size
     return float(behind.sum()) / len(rng)
