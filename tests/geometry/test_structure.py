@@ -10,8 +10,11 @@ from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
 from byoc_cli.geometry.structure import (
+    CORRELATION_CELLS,
     _correlation,
     clutter_fit,
+    clutter_shares,
+    correlation_shifts,
     structure,
     turned_alternatives,
 )
@@ -56,6 +59,44 @@ def test_one_turned_alternative_of_a_half_turn_is_the_truth(room):
         assert np.allclose(A[:3, :3] @ A[:3, :3].T, np.eye(3), atol=1e-9)
     closest = min(alternatives, key=lambda A: np.abs(A - TRUTH).max())
     assert np.abs(closest - TRUTH).max() < 2 * VOXEL
+
+
+def test_with_correlate_each_turn_also_starts_where_it_overlays_the_most(room):
+    src, tgt = room
+    alternatives = turned_alternatives(src, tgt, turn_z(180.0) @ TRUTH, VOXEL, correlate=True)
+    assert len(alternatives) == 6
+    for A in alternatives[3:]:
+        assert np.allclose(A[:3, :3] @ A[:3, :3].T, np.eye(3), atol=1e-9)
+    closest = min(alternatives[3:], key=lambda A: np.abs(A - TRUTH).max())
+    assert np.abs(closest - TRUTH).max() < 4 * VOXEL  # within a cell of three voxels
+
+
+def test_the_correlation_finds_a_known_shift_whatever_a_stray_point(room):
+    _, tgt = room
+    shift = np.array([0.45, -0.3, 0.15])  # whole cells of 0.15
+    moved = tgt.points - shift
+    (found,) = correlation_shifts([moved], tgt.points, 0.05)
+    assert np.allclose(found, shift, atol=1e-9)
+    strays = np.vstack([moved, [[1e6, 0.0, 0.0]], [[0.0, -1e30, 0.0]]])
+    (again,) = correlation_shifts([strays], np.vstack([tgt.points, [[0, 0, 1e9]]]), 0.05)
+    assert np.allclose(again, shift, atol=1e-9)
+
+
+def test_the_correlation_grid_stays_bounded_on_a_wide_span():
+    """A span of kilometres takes coarser cells, not more of them."""
+    rng = np.random.default_rng(0)
+    wide = rng.uniform(-2000.0, 2000.0, size=(5000, 3))
+    (found,) = correlation_shifts([wide], wide, 0.01)
+    cell = (4000.0**3 / CORRELATION_CELLS) ** (1 / 3)
+    assert np.all(np.abs(found) <= cell)
+
+
+def test_the_clutter_shares_are_the_clutter_fits(room):
+    src, tgt = room
+    transforms = [TRUTH, turn_z(180.0) @ TRUTH, turn_z(90.0) @ TRUTH]
+    shares = clutter_shares(src, tgt, transforms, 2 * VOXEL)
+    expected = [clutter_fit(src, tgt, T, 2 * VOXEL).clutter for T in transforms]
+    assert np.allclose(shares, expected)
 
 
 def test_bad_input_is_refused():

@@ -14,11 +14,12 @@ def test_the_fallback_keeps_the_more_confident_features_in_the_input_units():
     src_mm = cube(1) * 1000
     tgt, T = moved(cube(1))
     tgt_mm = tgt * 1000
-    plain = Registrar(fallback=None).register(src_mm, tgt_mm, seed=1)
+    mm = {"seed": 1, "scale": 0.001}  # a box of 3 m, not a room ten times the trained size
+    plain = Registrar(fallback=None).register(src_mm, tgt_mm, **mm)
     assert plain.fallback is None
-    never = Registrar(fallback="fpfh", fallback_below=0.0).register(src_mm, tgt_mm, seed=1)
+    never = Registrar(fallback="fpfh", fallback_below=0.0).register(src_mm, tgt_mm, **mm)
     assert never.fallback is None and np.array_equal(never.T_tgt_src, plain.T_tgt_src)
-    both = Registrar(fallback="fpfh", fallback_below=1.0).register(src_mm, tgt_mm, seed=1)
+    both = Registrar(fallback="fpfh", fallback_below=1.0).register(src_mm, tgt_mm, **mm)
     note = both.fallback
     assert note["features"] == "fpfh" and note["learned_confidence"] == plain.confidence
     assert note["confidence"] is not None and note["seconds"] > 0
@@ -103,3 +104,20 @@ def test_on_panoramas_larger_than_the_trained_range_fpfh_checks_its_result_again
     assert changes_for([street, street]) == ()
     assert Fallback("auto").registrar(LARGE_SCANS).recipe.matching.turns
     assert not Fallback("auto").registrar().recipe.matching.turns
+
+
+def test_the_learned_features_results_on_laser_scanned_rooms_are_checked_against_turns():
+    """panorama_changes: a room's scans (panoramas larger than the trained range) turn the
+    structure check on for the learned pass as for the fallback's; a Kinect-sized cloud, a
+    pair without clouds or a hand-set voxel leave it off."""
+    from types import SimpleNamespace
+
+    from byoc_cli.pipeline.fallback import LARGE_SCANS, panorama_changes
+
+    room = SimpleNamespace(cloud=room_scan(1.0))
+    made = Registrar()
+    assert panorama_changes(made, room, room) == LARGE_SCANS
+    small = SimpleNamespace(cloud=room_scan(1.0) / 10.0)  # a box of 0.4 m: the trained range
+    assert panorama_changes(made, small, small) == ()
+    assert panorama_changes(made, room, SimpleNamespace(cloud=None)) == ()
+    assert panorama_changes(Registrar(voxel_size=0.025), room, room) == ()

@@ -14,7 +14,14 @@ from byoc_cli.pipeline.fallback import Fallback
 from byoc_cli.pipeline.recipe import preset
 from byoc_cli.pipeline.register import RegisterConfig, _Timer, register_config
 from byoc_cli.pipeline.solve import Solver
-from byoc_cli.pipeline.structure_check import RIVAL_MARGIN, VETOED_CONFIDENCE, structure_rival
+from byoc_cli.pipeline.structure_check import (
+    ADOPT_GAIN,
+    RIVAL_MARGIN,
+    VETOED_CONFIDENCE,
+    Rival,
+    RivalCheck,
+    structure_rival,
+)
 from byoc_cli.pipeline.verdict import Verdict
 from tests.pipeline._rooms import SEEN_TWICE, seen_twice, turn_z
 
@@ -28,14 +35,32 @@ def clouds():
     return torch.from_numpy(src), torch.from_numpy(tgt)
 
 
-def _rival(clouds, T: np.ndarray) -> float:
+def _rival(clouds, T: np.ndarray) -> Rival:
     src, tgt = clouds
     return structure_rival(src, tgt, torch.from_numpy(T), VOXEL, clouds, VOXEL)
 
 
-def test_the_truth_has_no_rival_and_a_half_turn_has_one(clouds):
-    assert _rival(clouds, TRUTH) < -0.3
-    assert _rival(clouds, turn_z(180.0) @ TRUTH) > 0.2
+def test_the_occupancy_starts_give_the_same_rivals_here(clouds):
+    """With ``correlate`` (rooms) each turn starts twice; on this room both find the truth."""
+    src, tgt = clouds
+    check = RivalCheck(src, tgt, VOXEL, clouds, VOXEL, correlate=True)
+    rival = check(torch.from_numpy(turn_z(180.0) @ TRUTH))
+    assert rival.gain > 0.2 and np.abs(rival.T_tgt_src - TRUTH).max() < VOXEL / 5
+    assert check(torch.from_numpy(TRUTH)).gain < -0.3
+
+
+def test_the_truth_has_no_rival_and_a_half_turn_has_the_truth_for_one(clouds):
+    assert _rival(clouds, TRUTH).gain < -0.3
+    rival = _rival(clouds, turn_z(180.0) @ TRUTH)
+    assert rival.gain > 0.2
+    assert np.abs(rival.T_tgt_src - TRUTH).max() < VOXEL / 5  # refined onto the truth
+
+
+@pytest.mark.parametrize("degrees", [90.0, 270.0])
+def test_a_quarter_turn_has_the_truth_for_a_rival(clouds, degrees):
+    rival = _rival(clouds, turn_z(degrees) @ TRUTH)
+    assert rival.gain > ADOPT_GAIN
+    assert np.abs(rival.T_tgt_src - TRUTH).max() < VOXEL / 5
 
 
 def _solver(clouds, config: RegisterConfig) -> Solver:
@@ -45,49 +70,93 @@ def _solver(clouds, config: RegisterConfig) -> Solver:
     )
 
 
-def test_the_solver_caps_a_result_with_a_rival_and_keeps_one_without(clouds):
-    solver = _solver(clouds, RegisterConfig())
+class _Judge:
+    """A stand-in judge: the verdict of a refinement is its fitness, at confidence 0.7."""
+
+    def __call__(self, refinement, restart_cues):
+        return Verdict({"fitness": refinement.fitness}, 0.7, 50, 0.6)
+
+
+def _refinement(T: np.ndarray):
+    return SimpleNamespace(T_tgt_src=torch.from_numpy(T), fitness=0.9)
+
+
+ROOMS = RegisterConfig(turn_rooms=True)
+
+
+def test_the_solver_keeps_a_result_without_a_rival_and_on_rooms_adopts_a_better_one(clouds):
+    solver = _solver(clouds, ROOMS)
     verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
-    kept = solver.check_structure(torch.from_numpy(TRUTH), verdict)
+    refinement, kept = solver.check_structure(_refinement(TRUTH), verdict, _Judge())
     assert kept.confidence == 0.9 and kept.cues["structure_rival"] < 0
-    vetoed = solver.check_structure(torch.from_numpy(turn_z(180.0) @ TRUTH), verdict)
-    assert vetoed.confidence == VETOED_CONFIDENCE
-    assert vetoed.cues["structure_rival"] > 0.2
-    assert vetoed.cues["fitness"] == 0.9
+    assert "structure_adopted" not in kept.cues
+    assert torch.equal(refinement.T_tgt_src, torch.from_numpy(TRUTH))
+    half = turn_z(180.0) @ TRUTH
+    refinement, adopted = solver.check_structure(_refinement(half), verdict, _Judge())
+    assert np.abs(refinement.T_tgt_src.numpy() - TRUTH).max() < VOXEL / 5
+    assert adopted.cues["structure_adopted"] > 0.2  # the half turn's rival, the truth
+    assert adopted.cues["structure_rival"] < -0.3  # the truth's own rivals fit worse
+    assert adopted.confidence == 0.7  # the judge's verdict on the adopted result
+    assert adopted.cues["fitness"] == pytest.approx(refinement.fitness)
+    # elsewhere (--turns on depth frames) a better rival vetoes the result, never replaces it
+    refinement, vetoed = _solver(clouds, RegisterConfig()).check_structure(
+        _refinement(half), verdict, _Judge()
+    )
+    assert torch.equal(refinement.T_tgt_src, torch.from_numpy(half))
+    assert vetoed.confidence == VETOED_CONFIDENCE and "structure_adopted" not in vetoed.cues
 
 
 @pytest.mark.parametrize(
-    ("rival", "capped"), [(-0.3, False), (-RIVAL_MARGIN - 0.01, False), (-0.03, True), (0.1, True)]
+    ("gain", "capped"), [(-0.3, False), (-RIVAL_MARGIN - 0.01, False), (-0.03, True), (0.05, True)]
 )
 def test_a_turn_that_fits_the_clutter_as_well_makes_the_result_ambiguous(
-    clouds, monkeypatch, rival, capped
+    clouds, monkeypatch, gain, capped
 ):
     """A rival within RIVAL_MARGIN of the result (a room that looks the same turned) caps it
-    as a better one does; NaN (no large planes) does not."""
+    as a better one below ADOPT_GAIN does; NaN (no large planes) does not."""
     import byoc_cli.pipeline.solve as solve
 
-    monkeypatch.setattr(solve, "structure_rival", lambda *a: rival)
+    monkeypatch.setattr(solve, "RivalCheck", lambda *a, **k: lambda T: Rival(gain, np.eye(4)))
     verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
-    got = _solver(clouds, RegisterConfig()).check_structure(torch.eye(4), verdict)
+    _, got = _solver(clouds, RegisterConfig()).check_structure(
+        _refinement(np.eye(4)), verdict, _Judge()
+    )
     assert got.confidence == (VETOED_CONFIDENCE if capped else 0.9)
-    monkeypatch.setattr(solve, "structure_rival", lambda *a: float("nan"))
-    unknown = _solver(clouds, RegisterConfig()).check_structure(torch.eye(4), verdict)
+    monkeypatch.setattr(solve, "RivalCheck", lambda *a, **k: lambda T: Rival(float("nan"), None))
+    _, unknown = _solver(clouds, RegisterConfig()).check_structure(
+        _refinement(np.eye(4)), verdict, _Judge()
+    )
     assert unknown.confidence == 0.9 and np.isnan(unknown.cues["structure_rival"])
+
+
+def test_an_adopted_rival_that_has_a_rival_of_its_own_is_ambiguous(clouds, monkeypatch):
+    """A point-symmetric room: the rival adopted fits its own half turn as well."""
+    import byoc_cli.pipeline.solve as solve
+
+    gains = iter([0.3, -0.01])
+    monkeypatch.setattr(solve, "RivalCheck", lambda *a, **k: lambda T: Rival(next(gains), TRUTH))
+    verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
+    _, got = _solver(clouds, ROOMS).check_structure(
+        _refinement(turn_z(180.0) @ TRUTH), verdict, _Judge()
+    )
+    assert got.cues["structure_adopted"] == 0.3 and got.cues["structure_rival"] == -0.01
+    assert got.confidence == VETOED_CONFIDENCE
 
 
 def test_a_cloud_without_large_planes_gives_no_rival():
     rng = np.random.default_rng(0)
     blob = torch.from_numpy(rng.normal(size=(3000, 3)))
-    assert np.isnan(
-        structure_rival(blob, blob, torch.eye(4, dtype=torch.float64), 0.1, (blob, blob), 0.1)
-    )
+    rival = structure_rival(blob, blob, torch.eye(4, dtype=torch.float64), 0.1, (blob, blob), 0.1)
+    assert np.isnan(rival.gain) and rival.T_tgt_src is None
 
 
-def _solve_half_turn(clouds, turns: bool):
+def _solve_half_turn(clouds, turns: bool, rooms: bool = False):
     """Solver.solve of exact correspondences under the half-turned truth, with the
-    configuration of the byoc preset with ``turns`` (every result at the gate or above)."""
+    configuration of the byoc preset with ``turns`` (every result at the gate or above) and
+    ``rooms`` (``turn_rooms``)."""
     recipe = preset("byoc").changed(matching__turns=turns)
-    config = dataclasses.replace(register_config(recipe), min_confidence=0.0)
+    config = register_config(recipe)
+    config = dataclasses.replace(config, min_confidence=0.0, turn_rooms=rooms)
     src = clouds[0][::20]
     T = torch.from_numpy(turn_z(180.0) @ TRUTH)
     correspondences = (src, src @ T[:3, :3].T + T[:3, 3], torch.ones(len(src), dtype=src.dtype))
@@ -113,6 +182,15 @@ def test_with_turns_the_solver_checks_and_caps_a_half_turn(clouds):
     assert verdict.cues["structure_rival"] > 0.2 and "structure" in timings
     assert torch.equal(refinement.T_tgt_src, unrefined.T_tgt_src)  # only the confidence moves
     assert verdict.confidence == min(unchecked.confidence, VETOED_CONFIDENCE)
+
+
+def test_on_rooms_the_solver_adopts_the_truth_over_a_half_turn(clouds):
+    unrefined, _, _ = _solve_half_turn(clouds, turns=False)
+    refinement, verdict, timings = _solve_half_turn(clouds, turns=True, rooms=True)
+    assert np.abs(unrefined.T_tgt_src.numpy() - turn_z(180.0) @ TRUTH).max() < VOXEL / 5
+    assert np.abs(refinement.T_tgt_src.numpy() - TRUTH).max() < VOXEL / 5
+    assert verdict.cues["structure_adopted"] > 0.2 and "structure" in timings
+    assert verdict.cues["structure_rival"] < -0.3
 
 
 def test_the_fallback_carries_the_turns_into_its_recipe():

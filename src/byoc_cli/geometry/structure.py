@@ -26,6 +26,11 @@ STRUCTURE_CONE_DEG = 15.0
 STRUCTURE_MIN_SHARE, STRUCTURE_SLAB = 0.04, 2.0
 #: normals sampled for the main directions
 STRUCTURE_SAMPLES = 2000
+#: the cells of a turn's :func:`correlation_shift`, in voxels; the percentiles of the points
+#: its grids span, and the cells of a grid at most (coarser cells beyond)
+CORRELATION_CELL = 3.0
+CORRELATION_SPAN = (1.0, 99.0)
+CORRELATION_CELLS = 2**16
 
 
 class Structure(NamedTuple):
@@ -137,17 +142,40 @@ def clutter_fit(src: Structure, tgt: Structure, T: np.ndarray, radius: float) ->
     )
 
 
+def clutter_shares(
+    src: Structure, tgt: Structure, transforms: list[np.ndarray], radius: float
+) -> np.ndarray:
+    """``(K,)`` :attr:`ClutterFit.clutter` of ``src`` on ``tgt`` under each of ``transforms``
+    (``(4, 4)`` each), on one search tree of the target (NaN without clutter)."""
+    from pykdtree.kdtree import KDTree
+
+    clutter = src.points[~src.mask]
+    if not len(clutter):
+        return np.full(len(transforms), math.nan)
+    tree = KDTree(tgt.points)
+    out = []
+    for T in transforms:
+        T = np.asarray(T, dtype=np.float64)
+        moved = clutter @ T[:3, :3].T + T[:3, 3]
+        out.append(float((tree.query(moved, k=1, distance_upper_bound=radius)[0] < radius).mean()))
+    return np.array(out)
+
+
 def turned_alternatives(
     src: Structure,
     tgt: Structure,
     T: np.ndarray,
     voxel_size: float,
     degrees: tuple[float, ...] = (90.0, 180.0, 270.0),
+    correlate: bool = False,
 ) -> list[np.ndarray]:
     """``T (4, 4)`` turned by each of ``degrees`` about the target's up axis through the
     moved source's centre, then moved so that the source's large planes overlay the target's
     along each main direction (:func:`_plane_shift`): where a room turned onto itself would
-    put the source, one ``(4, 4)`` per turn."""
+    put the source, one ``(4, 4)`` per turn. With ``correlate``, each turn is followed by a
+    second one moved by :func:`correlation_shift` instead (cells of
+    :data:`CORRELATION_CELL` voxels): where the turned source overlays the most of the whole
+    target (a room whose walls the source sees in part, which the planes alone misplace)."""
     from byoc_cli.geometry.orientation import turn_about
 
     T = np.asarray(T, dtype=np.float64)
@@ -155,7 +183,7 @@ def turned_alternatives(
     moved = src.points @ T[:3, :3].T + T[:3, 3]
     normals = src.normals @ T[:3, :3].T
     centre = moved.mean(axis=0)
-    out = []
+    out, turned = [], []
     for deg in degrees:
         turn = turn_about(up, deg, centre)
         p = (moved @ turn[:3, :3].T + turn[:3, 3])[src.mask]
@@ -165,7 +193,53 @@ def turned_alternatives(
             p, n, tgt.points[tgt.mask], tgt.normals[tgt.mask], tgt.directions, voxel_size
         )
         out.append(move @ turn @ T)
+        turned.append(turn @ T)
+    if correlate:
+        sources = [src.points @ U[:3, :3].T + U[:3, 3] for U in turned]
+        for U, shift in zip(
+            turned, correlation_shifts(sources, tgt.points, voxel_size), strict=True
+        ):
+            move = np.eye(4)
+            move[:3, 3] = shift
+            out.append(move @ U)
     return out
+
+
+def correlation_shifts(
+    sources: list[np.ndarray], q: np.ndarray, voxel_size: float
+) -> list[np.ndarray]:
+    """``(3,)`` for each of ``sources`` (``(P, 3)`` arrays), the translation that lays its
+    most occupied cells on occupied cells of ``q (Q, 3)``: the peak of the cross-correlation
+    of their occupancy grids (cubes of :data:`CORRELATION_CELL` voxels, by FFT), in whole
+    cells. The grids span the middle of the points (their :data:`CORRELATION_SPAN`
+    percentiles: a stray point far away is left out) and hold at most
+    :data:`CORRELATION_CELLS` cells (a wider span takes coarser cells; zeros past the float
+    range); the target's is transformed once."""
+    boxes = [np.percentile(x, CORRELATION_SPAN, axis=0) for x in (q, *sources)]
+    cell = CORRELATION_CELL * voxel_size
+    lo = np.min([b[0] for b in boxes], axis=0) - cell
+    hi = np.max([b[1] for b in boxes], axis=0) + cell
+    cell = max(cell, float(np.prod(hi - lo) / CORRELATION_CELLS) ** (1.0 / 3.0))
+    if not np.isfinite(cell) or not np.all(np.isfinite(lo)):  # a span past float range
+        return [np.zeros(3) for _ in sources]
+    shape = np.ceil((hi - lo) / cell).astype(np.int64) + 1
+    size = tuple(int(n) for n in 2 * shape - 1)  # every lag, none wrapped around
+
+    def spectrum(points: np.ndarray) -> np.ndarray:
+        keep = np.all((points >= lo) & (points < hi), axis=1)
+        cells = np.floor((points[keep] - lo) / cell).astype(np.int64)
+        grid = np.zeros(size, dtype=np.float32)
+        grid[tuple(cells.T)] = 1.0
+        return np.fft.rfftn(grid, axes=(0, 1, 2))
+
+    target = spectrum(q)
+    shifts = []
+    for points in sources:
+        correlation = np.fft.irfftn(target * np.conj(spectrum(points)), size, axes=(0, 1, 2))
+        lag = np.array(np.unravel_index(int(np.argmax(correlation)), size))
+        lag = np.where(lag >= shape, lag - np.array(size), lag)
+        shifts.append(lag * cell)
+    return shifts
 
 
 def _plane_shift(p, n, q, m, directions, voxel_size) -> np.ndarray:

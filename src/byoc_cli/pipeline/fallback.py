@@ -4,11 +4,13 @@ way) and the more confident result is kept; the result's ``fallback`` says what 
 
 FPFH sizes its voxel by the scene (:func:`~byoc_cli.pipeline.scale.size_radius`): on a laser
 scan, whose points crowd around the scanner, that is coarser than the learned features' own.
-On panoramas that large (laser scans of rooms) FPFH's result is also checked against its
-turns about the up axis (:mod:`~byoc_cli.pipeline.structure_check`): a room turned 90 or 180
-deg fits its floor, ceiling and walls, and FPFH's confidence cannot tell it. On the 14
-simulated rooms of docs/rooms.md this takes FPFH's voxel from 5-13 cm to 11-16 cm and the
-default from 6 right and 2 wrong with exit 0 to 7 and 0.
+On panoramas that large (laser scans of rooms) every result, FPFH's and the learned
+features', is also checked against its turns about the up axis
+(:mod:`~byoc_cli.pipeline.structure_check`, :func:`panorama_changes`): a room turned 90 or
+180 deg fits its floor, ceiling and walls, and no confidence tells it; a turn that fits what
+stands in the room clearly better is taken instead. On the 14 simulated rooms of
+docs/rooms.md this takes FPFH's voxel from 5-13 cm to 11-16 cm and the default from 6 right
+and 2 wrong with exit 0 to 10 and 0.
 """
 
 from __future__ import annotations
@@ -130,6 +132,21 @@ def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
 
     panorama = any(s.even_radius is not None for s in scales)
     return LARGE_SCANS if panorama and size_radius(tuple(scales)) > TRAINED_RADIUS[1] else ()
+
+
+def panorama_changes(made: Any, src: Features, tgt: Features) -> tuple[tuple[str, Any], ...]:
+    """:func:`changes_for` the pair ``src``, ``tgt`` as ``made`` (a
+    :class:`~byoc_cli.pipeline.featurizer.Featurizer` with an auto voxel) measured their
+    clouds: the learned features' results on laser scans of rooms are checked against their
+    turns too (the turned rooms they return look right to every other cue). None without an
+    auto voxel or both clouds, or where a cloud has too few points to measure."""
+    if not made.auto_voxel or src.cloud is None or tgt.cloud is None:
+        return ()
+    try:
+        scales = [made.cloud_scale(f.cloud, k) for f, k in ((src, "source"), (tgt, "target"))]
+    except RegistrationError:
+        return ()
+    return changes_for(scales)
 
 
 def register_clouds(

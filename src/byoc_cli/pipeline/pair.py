@@ -5,7 +5,8 @@ robust fit, the refinement and the judgement
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import dataclasses
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -14,6 +15,26 @@ from byoc_cli.pipeline.results import Features, Registration
 
 if TYPE_CHECKING:
     from byoc_cli.pipeline.recipe import RegistrationRecipe
+
+
+class Scans(NamedTuple):
+    """What a pair's clouds are, beyond their features (:func:`match_pair`).
+
+    Attributes:
+        scan_lines: a cloud is sampled along lines fixed to its sensor (an identity-like
+            result is fitted again without the correspondences it explains; :func:`scan_lines`).
+        rooms: laser scans of rooms (:func:`~byoc_cli.pipeline.fallback.panorama_changes`):
+            the structure check's turns also start where they overlay the most of the
+            target, and a turn that fits clearly better is taken
+            (:attr:`~byoc_cli.pipeline.register.RegisterConfig.turn_rooms`).
+    """
+
+    scan_lines: bool = False
+    rooms: bool = False
+
+
+#: clouds that are neither (depth frames, fragments, objects)
+PLAIN = Scans()
 
 
 def match_pair(
@@ -25,7 +46,7 @@ def match_pair(
     features: str,
     weights_sha256: str | None,
     parallel: Any = None,
-    scan_lines: bool = False,
+    scans: Scans = PLAIN,
 ) -> Registration:
     """Register two featured clouds with ``recipe``: ratio-test matches, the robust fit,
     the multiscale refinement on ``refine_clouds`` (their
@@ -37,8 +58,7 @@ def match_pair(
             its ``origin``.
         features, weights_sha256: the extractor that ran (the report's).
         parallel: runs independent pieces side by side (None: in turn).
-        scan_lines: a cloud is sampled along lines fixed to its sensor (an identity-like
-            result is fitted again without the correspondences it explains).
+        scans: what the clouds are (:class:`Scans`).
 
     Returns:
         the registration, ``T_tgt_src`` in input coordinates (origins added back) and units
@@ -50,6 +70,8 @@ def match_pair(
     from byoc_cli.pipeline.register import estimate_transform, register_config
 
     config = register_config(recipe)
+    if scans.rooms:
+        config = dataclasses.replace(config, turn_rooms=True)
     result = estimate_transform(
         _local(src),
         _local(tgt),
@@ -58,7 +80,7 @@ def match_pair(
         refine_clouds,
         refine_voxel=src.refine_voxel,
         parallel=parallel,
-        scan_lines=scan_lines,
+        scan_lines=scans.scan_lines,
     )
     T = about_origins(result.T_tgt_src.numpy(), src.origin, tgt.origin)
     T[:3, 3] /= src.scale  # back to the input units: a transform of s * x has t / s

@@ -78,7 +78,13 @@ class RegisterConfig:
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
         structure_check: a result that reaches ``min_confidence`` is checked against its
             turns about the up axis (:meth:`~byoc_cli.pipeline.solve.Solver.check_structure`);
-            on with the recipe's ``matching.turns`` (scans declared turned about the vertical).
+            on with the recipe's ``matching.turns`` (scans declared turned about the vertical,
+            laser scans of rooms: :func:`~byoc_cli.pipeline.fallback.panorama_changes`).
+        turn_rooms: the structure check of laser scans of rooms: each turn also starts where it
+            overlays the most of the target, and a turn that fits what stands in the room
+            better by :data:`~byoc_cli.pipeline.structure_check.ADOPT_GAIN` is taken instead
+            (measured on rooms; on depth frames with ``--turns`` it finds rivals among partial
+            views: docs/experiments/2026-11-28-room-turn-adoption.md).
     """
 
     num_correspondences: int = PAPER.matching.correspondences
@@ -98,6 +104,7 @@ class RegisterConfig:
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
     structure_check: bool = PAPER.matching.turns
+    turn_rooms: bool = False
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:

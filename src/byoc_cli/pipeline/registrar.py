@@ -23,10 +23,10 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 from byoc_cli.pipeline.engine_recipe import FROM_RECIPE, registrar_recipe, resolve_device
-from byoc_cli.pipeline.fallback import Fallback
+from byoc_cli.pipeline.fallback import Fallback, panorama_changes
 from byoc_cli.pipeline.featurizer import Featurizer
 from byoc_cli.pipeline.memo import RefineClouds
-from byoc_cli.pipeline.pair import match_pair, same_voxel, scan_lines
+from byoc_cli.pipeline.pair import Scans, match_pair, same_voxel, scan_lines
 from byoc_cli.pipeline.recheck import checked
 from byoc_cli.pipeline.results import Features, Registration
 from byoc_cli.pipeline.retries import retried
@@ -187,13 +187,13 @@ class Registrar(Featurizer):
         return seen(self, registration, (src, tgt), recipe)
 
     def match_alone(self, src: Features, tgt: Features, **settings: Any) -> Registration:
-        """:meth:`match` without the fallback's second opinion, whatever the confidence (for a
-        smooth pair the learned features are the second opinion:
-        :mod:`byoc_cli.pipeline.feature_choice`); ``settings``: :meth:`match`'s keywords."""
+        """:meth:`match` (``settings``: its keywords) without the fallback, whatever the confidence
+        (a smooth pair's second opinion is the learned features': :mod:`.feature_choice`)."""
         src, tgt = same_voxel(self, src, tgt)
         if (src.features, src.voxel_size, src.scale) != (tgt.features, tgt.voxel_size, tgt.scale):
             raise ValueError("src and tgt must have the same features, voxel size and scale")
-        recipe = self.recipe_of(**settings)
+        rooms = panorama_changes(self, src, tgt)  # laser scans of rooms: their turns checked
+        recipe = self.recipe_of(**settings).changed(**dict(rooms))
         full = None
         if src.cloud is not None and tgt.cloud is not None:
             full = (self.refinement_cloud(src), self.refinement_cloud(tgt))
@@ -207,7 +207,7 @@ class Registrar(Featurizer):
             features=self.features,
             weights_sha256=self.weights_sha256,
             parallel=parallel,
-            scan_lines=scan_lines(self, src, tgt),
+            scans=Scans(scan_lines(self, src, tgt), bool(rooms)),
         )
 
     def fpfh_registration(self, clouds: tuple, scales: list, seed=None, changes=()):

@@ -8,11 +8,12 @@ correspondences (:func:`fit_robust`: randomized Procrustes or RANSAC), refines t
 the restart floor (:func:`run_restarts`) and judges the end
 (:class:`byoc_cli.pipeline.verdict.Judge`); with ``structure_check`` (the recipe's
 ``matching.turns``), a result that reaches the gate is checked against its turns about the up
-axis (:meth:`Solver.check_structure`).
+axis, and a turn that fits clearly better taken instead (:meth:`Solver.check_structure`).
 """
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from typing import TYPE_CHECKING
@@ -23,7 +24,13 @@ from byoc_cli.errors import RegistrationError
 from byoc_cli.fitting import randomized_procrustes, ransac, spatial_compatibility
 from byoc_cli.pipeline.refine import Refinement, measure_fit, refine_multiscale
 from byoc_cli.pipeline.restarts import restart_refinement
-from byoc_cli.pipeline.structure_check import RIVAL_MARGIN, VETOED_CONFIDENCE, structure_rival
+from byoc_cli.pipeline.structure_check import (
+    ADOPT_GAIN,
+    RIVAL_MARGIN,
+    VETOED_CONFIDENCE,
+    Rival,
+    RivalCheck,
+)
 from byoc_cli.pipeline.verdict import NO_RESTARTS, Judge, Verdict
 
 if TYPE_CHECKING:
@@ -46,6 +53,7 @@ class Solver:
         #: the translation below which a result is identity-like
         #: (:func:`byoc_cli.pipeline.register.identity_like`)
         self.still = config.inlier_factor * refine_voxel
+        self._rivals = None  # the structure check's RivalCheck, made on first use
 
     def solve(self, fitted, judged, generator, timer) -> tuple[Refinement, Verdict]:
         """The refined robust fit of the correspondences ``fitted`` (``p, q (K, 3)``, ``w
@@ -89,28 +97,52 @@ class Solver:
             verdict = judge(refinement, restart_cues)
             start = timer("verify", start)
         if config.structure_check and verdict.confidence >= config.min_confidence:
-            verdict = self.check_structure(refinement.T_tgt_src, verdict)
+            refinement, verdict = self.check_structure(refinement, verdict, judge)
             timer("structure", start)
         return refinement, verdict
 
-    def check_structure(self, T: torch.Tensor, verdict: Verdict) -> Verdict:
-        """``verdict`` with the cue ``structure_rival`` (:func:`structure_rival`), its
-        confidence capped at :data:`VETOED_CONFIDENCE` when a turned rival fits the clutter
-        as well, less well by at most :data:`RIVAL_MARGIN` (the result is ambiguous)."""
-        rival = structure_rival(
-            self.src.points,
-            self.tgt.points,
-            T,
-            self.voxel_size,
-            self.full,
-            self.refine_voxel,
-            self.parallel,
-        )
-        cues = {**verdict.cues, "structure_rival": rival}
+    def check_structure(
+        self, refinement: Refinement, verdict: Verdict, judge: Judge
+    ) -> tuple[Refinement, Verdict]:
+        """``refinement`` and ``verdict`` with the cue ``structure_rival``
+        (:func:`structure_rival`), the confidence capped at :data:`VETOED_CONFIDENCE` when a
+        turned rival fits the clutter as well, less well by at most :data:`RIVAL_MARGIN`
+        (the result is ambiguous). On laser scans of rooms (``config.turn_rooms``) a rival that
+        fits it better by :data:`ADOPT_GAIN` is adopted: refined, judged by ``judge`` and
+        checked against its own turns in turn (cue ``structure_adopted``: the gain it was
+        adopted for)."""
+        rival = self._rival(refinement.T_tgt_src)
+        adopted = self.config.turn_rooms and rival.gain >= ADOPT_GAIN
+        if adopted:
+            start = torch.from_numpy(rival.T_tgt_src)
+            refinement = refine_multiscale(
+                *self.full, start, self.refine_voxel, parallel=self.parallel
+            )
+            verdict = judge(refinement, NO_RESTARTS)
+            gain = rival.gain
+            rival = self._rival(refinement.T_tgt_src)
+        cues = {**verdict.cues, "structure_rival": rival.gain}
+        if adopted:
+            cues["structure_adopted"] = gain
         confidence = verdict.confidence
-        if rival > -RIVAL_MARGIN:
+        if not rival.gain <= -RIVAL_MARGIN and not math.isnan(rival.gain):
             confidence = min(confidence, VETOED_CONFIDENCE)
-        return verdict._replace(cues=cues, confidence=confidence)
+        return refinement, verdict._replace(cues=cues, confidence=confidence)
+
+    def _rival(self, T: torch.Tensor) -> Rival:
+        """:func:`structure_rival` of ``T`` on this solver's clouds (their structures found
+        once)."""
+        if self._rivals is None:
+            self._rivals = RivalCheck(
+                self.src.points,
+                self.tgt.points,
+                self.voxel_size,
+                self.full,
+                self.refine_voxel,
+                self.parallel,
+                correlate=self.config.turn_rooms,
+            )
+        return self._rivals(T)
 
 
 def run_restarts(clouds, refinement: Refinement, voxel_size: float, parallel):

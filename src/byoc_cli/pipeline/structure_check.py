@@ -1,31 +1,35 @@
 """The structure check of a result about to pass the gate: does the source, turned 90, 180 or
-270 deg about the up axis, fit what is not floor, ceiling or wall as well as the result does?
+270 deg about the up axis, fit what is not floor, ceiling or wall better, or as well?
 
 A room turned onto itself about its up axis fits its large planes (floor, ceiling, walls) as
 well as the truth, and so the fit cues of the verdict; what stands in the room does not
-(docs/experiments/2026-11-27-room-structure-cue.md). :func:`structure_rival` turns the result
-about the target's up axis, moves each turn so the source's large planes overlay the
-target's, refines the turns together (:func:`~byoc_cli.pipeline.restarts.refine_starts`) and
-returns how much better the best of them fits the source's clutter than the result
-(:func:`byoc_cli.geometry.structure.clutter_fit`). :class:`~byoc_cli.pipeline.solve.Solver`
-caps the confidence of a result whose rival fits its clutter less well by no more than
-:data:`RIVAL_MARGIN` (a turn that fits better, or a room that looks the same turned: the
-result is ambiguous), when the recipe's ``matching.turns`` is on (``--turns``: scans declared
-turned about the vertical; and the FPFH fallback on panoramic laser scans of rooms,
-:mod:`byoc_cli.pipeline.fallback`; the check costs a refinement of three starts per result
-that passes). On the simulated rooms of docs/rooms.md right results read -0.62 to -0.11,
-and -0.71 to -0.02 in the point-symmetric rooms, whose half turn differs by one small box;
-wrong ones -0.03 to +0.50.
+(docs/experiments/2026-11-27-room-structure-cue.md). :class:`RivalCheck` turns the result
+about the target's up axis, starts each turn twice (moved so the source's large planes
+overlay the target's, and where the turned source overlays the most of the target:
+:func:`~byoc_cli.geometry.structure.turned_alternatives`), refines the six starts together
+(:func:`~byoc_cli.pipeline.restarts.refine_starts`) and returns how much better the best of
+them fits the source's clutter than the result, and that rival
+(:func:`byoc_cli.geometry.structure.clutter_shares`). :class:`~byoc_cli.pipeline.solve.Solver`
+takes a rival that fits better by :data:`ADOPT_GAIN` instead of the result (refined, judged
+and checked in turn), and caps the confidence of a result whose rival fits its clutter less
+well by no more than :data:`RIVAL_MARGIN` (a room that looks the same turned: the result is
+ambiguous). It runs when the recipe's ``matching.turns`` is on: ``--turns`` (scans declared
+turned about the vertical), and every result on panoramic laser scans of rooms
+(:func:`~byoc_cli.pipeline.fallback.panorama_changes`). On the 14 simulated rooms of
+docs/rooms.md (three seeds) right results read -0.45 to -0.10; the rivals taken gained 0.11
+to 0.40 and each ended right; a point-symmetric room's half turn, one small box apart,
+-0.02 (refused).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from byoc_cli.geometry.structure import clutter_fit, structure, turned_alternatives
+from byoc_cli.geometry.structure import clutter_shares, structure, turned_alternatives
 from byoc_cli.pipeline.restarts import RESTART_POINTS, refine_starts
 
 #: a turned rival whose clutter fit is lower than the result's by less than this (or higher)
@@ -35,6 +39,65 @@ RIVAL_MARGIN = 0.05
 RIVAL_RADIUS = 2.0
 #: the confidence of a vetoed result at most
 VETOED_CONFIDENCE = 0.1
+#: a turned rival whose clutter fit is higher than the result's by at least this replaces
+#: the result (refined from there, judged again and checked against its own turns)
+ADOPT_GAIN = 0.1
+
+
+class Rival(NamedTuple):
+    """Result of :func:`structure_rival`.
+
+    Attributes:
+        gain: how much better the best turned rival fits the source's clutter than the
+            result (NaN when the source has no clutter or no large plane is found).
+        T_tgt_src: ``(4, 4)`` float64 that rival, refined (None with a NaN ``gain``).
+    """
+
+    gain: float
+    T_tgt_src: np.ndarray | None
+
+
+class RivalCheck:
+    """:func:`structure_rival` of one pair, its clouds' structures found once for every
+    result checked (a result, then the rival it adopts).
+
+    Args:
+        points_src, points_tgt: ``(N, 3)``, ``(M, 3)`` the kept points (feature voxels).
+        voxel_size: the feature voxel.
+        full, refine_voxel: the clouds the refinement runs on and its voxel (the
+            :class:`~byoc_cli.pipeline.solve.Solver`'s).
+        parallel: runs the refinement's searches side by side.
+        correlate: each turn also starts where it overlays the most of the target
+            (:func:`~byoc_cli.geometry.structure.turned_alternatives`; laser scans of rooms).
+    """
+
+    def __init__(
+        self, points_src, points_tgt, voxel_size, full, refine_voxel, parallel=None, correlate=False
+    ):
+        self.src = structure(points_src.detach().cpu().double().numpy(), voxel_size)
+        self.tgt = structure(points_tgt.detach().cpu().double().numpy(), voxel_size)
+        self.voxel_size, self.full, self.refine_voxel = voxel_size, full, refine_voxel
+        self.parallel, self.correlate = parallel, correlate
+
+    def __call__(self, T: torch.Tensor) -> Rival:
+        """The :class:`Rival` of the result ``T (4, 4)`` (``T_tgt_src``)."""
+        src, tgt, voxel = self.src, self.tgt, self.voxel_size
+        if not src.mask.any() or src.mask.all() or not tgt.mask.any():
+            return Rival(math.nan, None)
+        T_np = T.detach().cpu().double().numpy()
+        starts = torch.from_numpy(
+            np.stack(turned_alternatives(src, tgt, T_np, voxel, correlate=self.correlate))
+        )
+        ends, _ = refine_starts(
+            *self.full,
+            starts,
+            self.refine_voxel,
+            max_source_points=RESTART_POINTS,
+            parallel=self.parallel,
+        )
+        fits = clutter_shares(src, tgt, [T_np, *ends.numpy()], RIVAL_RADIUS * voxel)
+        best = int(np.argmax(fits[1:]))
+        return Rival(float(fits[1 + best] - fits[0]), ends[best].numpy())
 
 
 def structure_rival(
@@ -45,11 +108,13 @@ def structure_rival(
     full,
     refine_voxel: float,
     parallel=None,
-) -> float:
+) -> Rival:
     """How much better the best turned rival of ``T (4, 4)`` fits the source's clutter than
     ``T`` does: the share of the source's non-structure points within :data:`RIVAL_RADIUS`
-    feature voxels of a target point, the rival's minus ``T``'s (NaN when the source has no
-    clutter or no large plane is found).
+    feature voxels of a target point, the rival's minus ``T``'s, and that rival
+    (:class:`RivalCheck`). Each turn starts twice (the large planes overlaid, and the most
+    occupied cells: :func:`~byoc_cli.geometry.structure.turned_alternatives` with
+    ``correlate``).
 
     Args:
         points_src, points_tgt: ``(N, 3)``, ``(M, 3)`` the kept points (feature voxels).
@@ -59,16 +124,4 @@ def structure_rival(
             :class:`~byoc_cli.pipeline.solve.Solver`'s).
         parallel: runs the refinement's searches side by side.
     """
-    src = structure(points_src.detach().cpu().double().numpy(), voxel_size)
-    tgt = structure(points_tgt.detach().cpu().double().numpy(), voxel_size)
-    if not src.mask.any() or src.mask.all() or not tgt.mask.any():
-        return math.nan
-    T_np = T.detach().cpu().double().numpy()
-    starts = torch.from_numpy(np.stack(turned_alternatives(src, tgt, T_np, voxel_size)))
-    ends, _ = refine_starts(
-        *full, starts, refine_voxel, max_source_points=RESTART_POINTS, parallel=parallel
-    )
-    radius = RIVAL_RADIUS * voxel_size
-    own = clutter_fit(src, tgt, T_np, radius).clutter
-    best = max(clutter_fit(src, tgt, end, radius).clutter for end in ends.numpy())
-    return float(best - own)
+    return RivalCheck(points_src, points_tgt, voxel_size, full, refine_voxel, parallel)(T)
