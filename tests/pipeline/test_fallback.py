@@ -107,17 +107,17 @@ def test_on_panoramas_larger_than_the_trained_range_fpfh_checks_its_result_again
 
 
 def test_the_learned_features_results_on_laser_scanned_rooms_are_checked_against_turns():
-    """panorama_changes: a room's scans (panoramas larger than the trained range) turn the
-    structure check on for the learned pass as for the fallback's; a Kinect-sized cloud, a
-    pair without clouds or a hand-set voxel leave it off."""
+    """large_panoramas: a room's scans (panoramas larger than the trained range) mark the
+    pair for the structure check of rooms; a Kinect-sized cloud, a pair without clouds or a
+    hand-set voxel do not."""
     from types import SimpleNamespace
 
-    from byoc_cli.pipeline.fallback import LARGE_SCANS, panorama_changes
+    from byoc_cli.pipeline.fallback import large_panoramas
 
     room = SimpleNamespace(cloud=room_scan(1.0))
     made = Registrar()
-    assert panorama_changes(made, room, room) == LARGE_SCANS
+    assert large_panoramas(made, room, room)
     small = SimpleNamespace(cloud=room_scan(1.0) / 10.0)  # a box of 0.4 m: the trained range
-    assert panorama_changes(made, small, small) == ()
-    assert panorama_changes(made, room, SimpleNamespace(cloud=None)) == ()
-    assert panorama_changes(Registrar(voxel_size=0.025), room, room) == ()
+    assert not large_panoramas(made, small, small)
+    assert not large_panoramas(made, room, SimpleNamespace(cloud=None))
+    assert not large_panoramas(Registrar(voxel_size=0.025), room, room)

@@ -23,6 +23,7 @@ from byoc_cli.pipeline.structure_check import (
     structure_rival,
 )
 from byoc_cli.pipeline.verdict import Verdict
+from tests._rings import room_scan
 from tests.pipeline._rooms import SEEN_TWICE, seen_twice, turn_z
 
 VOXEL = 0.05
@@ -43,10 +44,36 @@ def _rival(clouds, T: np.ndarray) -> Rival:
 def test_the_occupancy_starts_give_the_same_rivals_here(clouds):
     """With ``correlate`` (rooms) each turn starts twice; on this room both find the truth."""
     src, tgt = clouds
-    check = RivalCheck(src, tgt, VOXEL, clouds, VOXEL, correlate=True)
-    rival = check(torch.from_numpy(turn_z(180.0) @ TRUTH))
+    check = RivalCheck(src, tgt, VOXEL, clouds, VOXEL)
+    rival = check(torch.from_numpy(turn_z(180.0) @ TRUTH), correlate=True)
     assert rival.gain > 0.2 and np.abs(rival.T_tgt_src - TRUTH).max() < VOXEL / 5
-    assert check(torch.from_numpy(TRUTH)).gain < -0.3
+    assert check(torch.from_numpy(TRUTH), correlate=True).gain < -0.3
+
+
+def test_a_room_is_mostly_large_planes_and_an_object_is_not():
+    """RivalCheck.room_like: an empty room's scan lies on its planes; a blob centred on its
+    origin (an object, in millimetres a panorama as large as a room) has none."""
+    room = torch.from_numpy(room_scan(2.0))
+    assert RivalCheck(room, room, 0.1, (room, room), 0.1).room_like
+    rng = np.random.default_rng(0)
+    blob = rng.normal(size=(3000, 3))
+    blob = torch.from_numpy(100.0 * blob / np.linalg.norm(blob, axis=1, keepdims=True))
+    assert not RivalCheck(blob, blob, 5.0, (blob, blob), 5.0).room_like
+
+
+def test_a_turn_refined_back_onto_the_result_is_no_rival(clouds, monkeypatch):
+    """A smooth object's turned starts come back to the result: no rival (NaN), not one that
+    fits as well."""
+    import byoc_cli.pipeline.structure_check as structure_check
+
+    src, tgt = clouds
+    monkeypatch.setattr(
+        structure_check,
+        "refine_starts",
+        lambda *a, **k: (torch.from_numpy(np.stack([TRUTH] * 3)), None),
+    )
+    rival = RivalCheck(src, tgt, VOXEL, clouds, VOXEL)(torch.from_numpy(TRUTH))
+    assert np.isnan(rival.gain) and rival.T_tgt_src is None
 
 
 def test_the_truth_has_no_rival_and_a_half_turn_has_the_truth_for_one(clouds):
@@ -82,6 +109,7 @@ def _refinement(T: np.ndarray):
 
 
 ROOMS = RegisterConfig(turn_rooms=True)
+TURNS = RegisterConfig(structure_check=True)  # --turns
 
 
 def test_the_solver_keeps_a_result_without_a_rival_and_on_rooms_adopts_a_better_one(clouds):
@@ -99,11 +127,38 @@ def test_the_solver_keeps_a_result_without_a_rival_and_on_rooms_adopts_a_better_
     assert adopted.confidence == 0.7  # the judge's verdict on the adopted result
     assert adopted.cues["fitness"] == pytest.approx(refinement.fitness)
     # elsewhere (--turns on depth frames) a better rival vetoes the result, never replaces it
-    refinement, vetoed = _solver(clouds, RegisterConfig()).check_structure(
+    refinement, vetoed = _solver(clouds, TURNS).check_structure(
         _refinement(half), verdict, _Judge()
     )
     assert torch.equal(refinement.T_tgt_src, torch.from_numpy(half))
     assert vetoed.confidence == VETOED_CONFIDENCE and "structure_adopted" not in vetoed.cues
+
+
+def _stand_in(rival, room_like: bool = True):
+    """A RivalCheck class whose checks return ``rival()``."""
+
+    class StandIn:
+        def __init__(self, *args, **kwargs):
+            self.room_like = room_like
+
+        def __call__(self, T, correlate=False):
+            return rival()
+
+    return StandIn
+
+
+def test_a_large_panorama_that_is_no_room_is_left_unchecked(clouds, monkeypatch):
+    """turn_rooms on an object centred on its origin: no check, unless --turns asks."""
+    import byoc_cli.pipeline.solve as solve
+
+    monkeypatch.setattr(solve, "RivalCheck", _stand_in(lambda: Rival(0.3, TRUTH), False))
+    verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
+    half = _refinement(turn_z(180.0) @ TRUTH)
+    refinement, got = _solver(clouds, ROOMS).check_structure(half, verdict, _Judge())
+    assert got is verdict and refinement is half
+    config = RegisterConfig(turn_rooms=True, structure_check=True)
+    refinement, vetoed = _solver(clouds, config).check_structure(half, verdict, _Judge())
+    assert vetoed.confidence == VETOED_CONFIDENCE and refinement is half  # not adopted
 
 
 @pytest.mark.parametrize(
@@ -116,16 +171,12 @@ def test_a_turn_that_fits_the_clutter_as_well_makes_the_result_ambiguous(
     as a better one below ADOPT_GAIN does; NaN (no large planes) does not."""
     import byoc_cli.pipeline.solve as solve
 
-    monkeypatch.setattr(solve, "RivalCheck", lambda *a, **k: lambda T: Rival(gain, np.eye(4)))
+    monkeypatch.setattr(solve, "RivalCheck", _stand_in(lambda: Rival(gain, np.eye(4))))
     verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
-    _, got = _solver(clouds, RegisterConfig()).check_structure(
-        _refinement(np.eye(4)), verdict, _Judge()
-    )
+    _, got = _solver(clouds, TURNS).check_structure(_refinement(np.eye(4)), verdict, _Judge())
     assert got.confidence == (VETOED_CONFIDENCE if capped else 0.9)
-    monkeypatch.setattr(solve, "RivalCheck", lambda *a, **k: lambda T: Rival(float("nan"), None))
-    _, unknown = _solver(clouds, RegisterConfig()).check_structure(
-        _refinement(np.eye(4)), verdict, _Judge()
-    )
+    monkeypatch.setattr(solve, "RivalCheck", _stand_in(lambda: Rival(float("nan"), None)))
+    _, unknown = _solver(clouds, TURNS).check_structure(_refinement(np.eye(4)), verdict, _Judge())
     assert unknown.confidence == 0.9 and np.isnan(unknown.cues["structure_rival"])
 
 
@@ -134,7 +185,7 @@ def test_an_adopted_rival_that_has_a_rival_of_its_own_is_ambiguous(clouds, monke
     import byoc_cli.pipeline.solve as solve
 
     gains = iter([0.3, -0.01])
-    monkeypatch.setattr(solve, "RivalCheck", lambda *a, **k: lambda T: Rival(next(gains), TRUTH))
+    monkeypatch.setattr(solve, "RivalCheck", _stand_in(lambda: Rival(next(gains), TRUTH)))
     verdict = Verdict({"fitness": 0.9}, 0.9, 100, 0.8)
     _, got = _solver(clouds, ROOMS).check_structure(
         _refinement(turn_z(180.0) @ TRUTH), verdict, _Judge()

@@ -4,10 +4,10 @@ way) and the more confident result is kept; the result's ``fallback`` says what 
 
 FPFH sizes its voxel by the scene (:func:`~byoc_cli.pipeline.scale.size_radius`): on a laser
 scan, whose points crowd around the scanner, that is coarser than the learned features' own.
-On panoramas that large (laser scans of rooms) every result, FPFH's and the learned
-features', is also checked against its turns about the up axis
-(:mod:`~byoc_cli.pipeline.structure_check`, :func:`panorama_changes`): a room turned 90 or
-180 deg fits its floor, ceiling and walls, and no confidence tells it; a turn that fits what
+On panoramas that large FPFH's result is checked against its turns about the up axis
+(:mod:`~byoc_cli.pipeline.structure_check`), and where they are rooms (laser scans of rooms:
+:func:`large_panoramas`) every result, the learned features' too: a room turned 90 or 180
+deg fits its floor, ceiling and walls, and no confidence tells it; a turn that fits what
 stands in the room clearly better is taken instead. On the 14 simulated rooms of
 docs/rooms.md this takes FPFH's voxel from 5-13 cm to 11-16 cm and the default from 6 right
 and 2 wrong with exit 0 to 10 and 0.
@@ -134,19 +134,20 @@ def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
     return LARGE_SCANS if panorama and size_radius(tuple(scales)) > TRAINED_RADIUS[1] else ()
 
 
-def panorama_changes(made: Any, src: Features, tgt: Features) -> tuple[tuple[str, Any], ...]:
-    """:func:`changes_for` the pair ``src``, ``tgt`` as ``made`` (a
-    :class:`~byoc_cli.pipeline.featurizer.Featurizer` with an auto voxel) measured their
-    clouds: the learned features' results on laser scans of rooms are checked against their
-    turns too (the turned rooms they return look right to every other cue). None without an
-    auto voxel or both clouds, or where a cloud has too few points to measure."""
+def large_panoramas(made: Any, src: Features, tgt: Features) -> bool:
+    """Whether ``made`` (a :class:`~byoc_cli.pipeline.featurizer.Featurizer` with an auto
+    voxel) measured the clouds of ``src`` and ``tgt`` as panoramas larger than the trained
+    range (:func:`changes_for`): laser scans of rooms, whose results the structure check turns
+    back where the clouds are rooms
+    (:attr:`~byoc_cli.pipeline.register.RegisterConfig.turn_rooms`). False without an auto
+    voxel or both clouds, or where a cloud has too few points to measure."""
     if not made.auto_voxel or src.cloud is None or tgt.cloud is None:
-        return ()
+        return False
     try:
         scales = [made.cloud_scale(f.cloud, k) for f, k in ((src, "source"), (tgt, "target"))]
     except RegistrationError:
-        return ()
-    return changes_for(scales)
+        return False
+    return bool(changes_for(scales))
 
 
 def register_clouds(

@@ -23,9 +23,9 @@ class Scans(NamedTuple):
     Attributes:
         scan_lines: a cloud is sampled along lines fixed to its sensor (an identity-like
             result is fitted again without the correspondences it explains; :func:`scan_lines`).
-        rooms: laser scans of rooms (:func:`~byoc_cli.pipeline.fallback.panorama_changes`):
-            the structure check's turns also start where they overlay the most of the
-            target, and a turn that fits clearly better is taken
+        rooms: panoramas larger than the trained range
+            (:func:`~byoc_cli.pipeline.fallback.large_panoramas`): where they are rooms, the
+            structure check turns their results back
             (:attr:`~byoc_cli.pipeline.register.RegisterConfig.turn_rooms`).
     """
 

@@ -78,13 +78,17 @@ class RegisterConfig:
             (:data:`byoc_cli.pipeline.confidence.MODELS`).
         structure_check: a result that reaches ``min_confidence`` is checked against its
             turns about the up axis (:meth:`~byoc_cli.pipeline.solve.Solver.check_structure`);
-            on with the recipe's ``matching.turns`` (scans declared turned about the vertical,
-            laser scans of rooms: :func:`~byoc_cli.pipeline.fallback.panorama_changes`).
-        turn_rooms: the structure check of laser scans of rooms: each turn also starts where it
-            overlays the most of the target, and a turn that fits what stands in the room
-            better by :data:`~byoc_cli.pipeline.structure_check.ADOPT_GAIN` is taken instead
-            (measured on rooms; on depth frames with ``--turns`` it finds rivals among partial
-            views: docs/experiments/2026-11-28-room-turn-adoption.md).
+            on with the recipe's ``matching.turns`` (``--turns``: scans declared turned about
+            the vertical; the FPFH fallback on large panoramas).
+        turn_rooms: the clouds are panoramas larger than the trained range
+            (:func:`~byoc_cli.pipeline.fallback.large_panoramas`): where they are rooms
+            (:attr:`~byoc_cli.pipeline.structure_check.RivalCheck.room_like`) every result is
+            checked, each turn also starts where it overlays the most of the target, and a turn
+            that fits what stands in the room better by
+            :data:`~byoc_cli.pipeline.structure_check.ADOPT_GAIN` is taken instead (measured on
+            rooms; on depth frames with ``--turns`` the occupancy starts find rivals among
+            partial views, and objects centred on their origin are no rooms:
+            docs/experiments/2026-11-28-room-turn-adoption.md).
     """
 
     num_correspondences: int = PAPER.matching.correspondences

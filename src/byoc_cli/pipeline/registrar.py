@@ -23,7 +23,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 from byoc_cli.pipeline.engine_recipe import FROM_RECIPE, registrar_recipe, resolve_device
-from byoc_cli.pipeline.fallback import Fallback, panorama_changes
+from byoc_cli.pipeline.fallback import Fallback, large_panoramas
 from byoc_cli.pipeline.featurizer import Featurizer
 from byoc_cli.pipeline.memo import RefineClouds
 from byoc_cli.pipeline.pair import Scans, match_pair, same_voxel, scan_lines
@@ -192,8 +192,8 @@ class Registrar(Featurizer):
         src, tgt = same_voxel(self, src, tgt)
         if (src.features, src.voxel_size, src.scale) != (tgt.features, tgt.voxel_size, tgt.scale):
             raise ValueError("src and tgt must have the same features, voxel size and scale")
-        rooms = panorama_changes(self, src, tgt)  # laser scans of rooms: their turns checked
-        recipe = self.recipe_of(**settings).changed(**dict(rooms))
+        rooms = large_panoramas(self, src, tgt)  # laser scans of rooms: their turns checked
+        recipe = self.recipe_of(**settings)
         full = None
         if src.cloud is not None and tgt.cloud is not None:
             full = (self.refinement_cloud(src), self.refinement_cloud(tgt))
@@ -207,7 +207,7 @@ class Registrar(Featurizer):
             features=self.features,
             weights_sha256=self.weights_sha256,
             parallel=parallel,
-            scans=Scans(scan_lines(self, src, tgt), bool(rooms)),
+            scans=Scans(scan_lines(self, src, tgt), rooms),
         )
 
     def fpfh_registration(self, clouds: tuple, scales: list, seed=None, changes=()):

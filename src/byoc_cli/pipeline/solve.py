@@ -28,7 +28,6 @@ from byoc_cli.pipeline.structure_check import (
     ADOPT_GAIN,
     RIVAL_MARGIN,
     VETOED_CONFIDENCE,
-    Rival,
     RivalCheck,
 )
 from byoc_cli.pipeline.verdict import NO_RESTARTS, Judge, Verdict
@@ -96,7 +95,8 @@ class Solver:
             start = timer("restarts", start)
             verdict = judge(refinement, restart_cues)
             start = timer("verify", start)
-        if config.structure_check and verdict.confidence >= config.min_confidence:
+        checked = config.structure_check or config.turn_rooms
+        if checked and verdict.confidence >= config.min_confidence:
             refinement, verdict = self.check_structure(refinement, verdict, judge)
             timer("structure", start)
         return refinement, verdict
@@ -107,12 +107,18 @@ class Solver:
         """``refinement`` and ``verdict`` with the cue ``structure_rival``
         (:func:`structure_rival`), the confidence capped at :data:`VETOED_CONFIDENCE` when a
         turned rival fits the clutter as well, less well by at most :data:`RIVAL_MARGIN`
-        (the result is ambiguous). On laser scans of rooms (``config.turn_rooms``) a rival that
-        fits it better by :data:`ADOPT_GAIN` is adopted: refined, judged by ``judge`` and
-        checked against its own turns in turn (cue ``structure_adopted``: the gain it was
-        adopted for)."""
-        rival = self._rival(refinement.T_tgt_src)
-        adopted = self.config.turn_rooms and rival.gain >= ADOPT_GAIN
+        (the result is ambiguous). On large panoramas (``config.turn_rooms``) whose clouds are
+        rooms (:attr:`~byoc_cli.pipeline.structure_check.RivalCheck.room_like`) each turn also
+        starts where it overlays the most of the target, and a rival that fits better by
+        :data:`ADOPT_GAIN` is adopted: refined, judged by ``judge`` and checked against its
+        own turns in turn (cue ``structure_adopted``: the gain it was adopted for). A large
+        panorama that is not a room (an object centred on its origin) is left unchecked
+        unless ``config.structure_check``."""
+        rooms = self.config.turn_rooms and self._checker().room_like
+        if not rooms and not self.config.structure_check:  # a large panorama, not a room
+            return refinement, verdict
+        rival = self._checker()(refinement.T_tgt_src, correlate=rooms)
+        adopted = rooms and rival.gain >= ADOPT_GAIN
         if adopted:
             start = torch.from_numpy(rival.T_tgt_src)
             refinement = refine_multiscale(
@@ -120,7 +126,7 @@ class Solver:
             )
             verdict = judge(refinement, NO_RESTARTS)
             gain = rival.gain
-            rival = self._rival(refinement.T_tgt_src)
+            rival = self._checker()(refinement.T_tgt_src, correlate=True)
         cues = {**verdict.cues, "structure_rival": rival.gain}
         if adopted:
             cues["structure_adopted"] = gain
@@ -129,9 +135,8 @@ class Solver:
             confidence = min(confidence, VETOED_CONFIDENCE)
         return refinement, verdict._replace(cues=cues, confidence=confidence)
 
-    def _rival(self, T: torch.Tensor) -> Rival:
-        """:func:`structure_rival` of ``T`` on this solver's clouds (their structures found
-        once)."""
+    def _checker(self) -> RivalCheck:
+        """The :class:`RivalCheck` of this solver's clouds (their structures found once)."""
         if self._rivals is None:
             self._rivals = RivalCheck(
                 self.src.points,
@@ -140,9 +145,8 @@ class Solver:
                 self.full,
                 self.refine_voxel,
                 self.parallel,
-                correlate=self.config.turn_rooms,
             )
-        return self._rivals(T)
+        return self._rivals
 
 
 def run_restarts(clouds, refinement: Refinement, voxel_size: float, parallel):
