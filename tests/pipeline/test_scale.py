@@ -207,3 +207,19 @@ def test_measure_reads_the_even_radius_of_a_panorama_only():
     room = measure(torch.from_numpy(room_scan()), lines=False)
     assert room.even_radius > 1.3 * room.radius
     assert measure(torch.from_numpy(camera_scan()), lines=False).even_radius is None
+
+
+def test_a_georeferenced_scan_is_a_panorama_about_its_median():
+    """Far from the origin (UTM-like coordinates) the panorama test reads the directions
+    about the cloud's median: a room scan moved there is a panorama as at home, a depth frame
+    and a LiDAR ring scan are not; near the origin nothing changes (the room's median seen
+    from a corner is no panorama)."""
+    utm = np.array([4.5e5, 5.2e6, 100.0])
+    room = room_scan()
+    home = measure(torch.from_numpy(room), lines=False)
+    far = measure(torch.from_numpy(room + utm), lines=False)
+    assert far.even_radius == pytest.approx(home.even_radius, rel=1e-3)
+    for cloud in (camera_scan(), ring_scan()):
+        assert measure(torch.from_numpy(cloud + utm), lines=False).even_radius is None
+    corner = room - room.min(axis=0)  # the origin at a corner, 0 to 7 m: not far
+    assert measure(torch.from_numpy(corner), lines=False).even_radius is None
