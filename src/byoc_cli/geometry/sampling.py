@@ -225,6 +225,13 @@ class LocalFrame(NamedTuple):
         return kept - self.origin if self.moved else kept
 
 
+def far_from_origin(centre: np.ndarray, radius: float) -> bool:
+    """Whether a cloud of median point ``centre (3,)`` and ``radius`` lies more than
+    :data:`FAR_RADII` radii from the origin (a georeferenced scan: its origin is not its
+    sensor's)."""
+    return bool(np.abs(centre).max() > FAR_RADII * radius)
+
+
 def local_frame(points: np.ndarray, measured: Spread | None = None) -> LocalFrame:
     """The :class:`LocalFrame` of ``points (N, 3)`` float64 (finite); ``measured``: their
     :func:`spread`, when it is known. O(N)."""
@@ -236,7 +243,7 @@ def local_frame(points: np.ndarray, measured: Spread | None = None) -> LocalFram
     centre, radius = spread(points) if measured is None else measured
     if not radius > 0 or not np.isfinite(radius):
         return LocalFrame(zero, None, radius)
-    origin = centre if np.abs(centre).max() > FAR_RADII * radius else zero
+    origin = centre if far_from_origin(centre, radius) else zero
     reach = STRAY_RADII * radius
     columns = [points[:, k] for k in range(3)]
     with np.errstate(over="ignore", invalid="ignore"):

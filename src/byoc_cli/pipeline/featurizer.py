@@ -80,8 +80,7 @@ class Featurizer:
 
         from byoc_cli.pipeline.scale import measure
 
-        radius = self.spread(points).radius
-        return measure(torch.from_numpy(points), label, lines, radius=radius)
+        return measure(torch.from_numpy(points), label, lines, measured=self.spread(points))
 
     def spread(self, points: np.ndarray):
         """:func:`~byoc_cli.geometry.sampling.spread` of ``points (N, 3)``, computed once per

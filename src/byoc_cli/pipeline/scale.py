@@ -47,9 +47,9 @@ import torch
 
 from byoc_cli.errors import RegistrationError
 from byoc_cli.geometry.sampling import (
-    FAR_RADII,
-    cloud_radius,
+    Spread,
     even_radius,
+    far_from_origin,
     linear_share,
     nearest_spacing,
     spread,
@@ -170,11 +170,11 @@ class VoxelChoice(NamedTuple):
 
 
 def measure(
-    points: torch.Tensor, label: str = "cloud", lines: bool = True, radius: float | None = None
+    points: torch.Tensor, label: str = "cloud", lines: bool = True, measured: Spread | None = None
 ) -> CloudScale:
     """The :class:`CloudScale` of ``points (N, 3)`` (``lines`` False: without
     :attr:`~CloudScale.line_voxel`, None; :func:`scan_line_voxel` is most of the cost;
-    ``radius``: their :func:`~byoc_cli.geometry.sampling.cloud_radius` when it is known).
+    ``measured``: their :func:`~byoc_cli.geometry.sampling.spread` when it is known).
 
     Raises:
         RegistrationError: fewer than :data:`MIN_POINTS` distinct points (no scale can be
@@ -184,7 +184,7 @@ def measure(
     distinct = len(torch.unique(points, dim=0)) if len(points) < 10 * MIN_POINTS else len(points)
     if distinct < MIN_POINTS:
         raise RegistrationError(_too_few(points, distinct, label))
-    radius = cloud_radius(points) if radius is None else radius
+    centre, radius = spread(points) if measured is None else measured
     check_radius(radius, label)
     spacing = nearest_spacing(points)
     if radius <= 0 or spacing <= 0 or radius < 2 * spacing:  # no extent: a few points repeated?
@@ -192,19 +192,9 @@ def measure(
         if distinct < MIN_POINTS:
             raise RegistrationError(_too_few(points, distinct, label))
     line_voxel = scan_line_voxel(points, spacing, radius) if lines else None
-    even = even_radius(points) if surround_share(_around(points, radius)) >= PANORAMA else None
+    around = points - torch.from_numpy(centre) if far_from_origin(centre, radius) else points
+    even = even_radius(points) if surround_share(around) >= PANORAMA else None
     return CloudScale(len(points), spacing, radius, label, line_voxel, even)
-
-
-def _around(points: torch.Tensor, radius: float) -> torch.Tensor:
-    """``points (N, 3)`` as the panorama test reads them: about the origin, or about their
-    median point where that lies more than :data:`~byoc_cli.geometry.sampling.FAR_RADII`
-    radii from it (a georeferenced scan, whose scanner stood among its points: the median of
-    a room scan lies in the room)."""
-    centre = spread(points).centre
-    if not np.abs(centre).max() > FAR_RADII * radius:
-        return points
-    return points.to(torch.float64) - torch.from_numpy(centre)
 
 
 #: float32 coordinates this far from the origin lie 1 cm or more apart
