@@ -14,7 +14,6 @@ from byoc_cli.geometry.transforms import axis_angle_matrix
 from byoc_cli.pipeline.feature_choice import (
     AGREE_DEG,
     AGREE_VOXELS,
-    REPRODUCE_FLOOR,
     REPRODUCE_RMSE,
     REPRODUCED_CONFIDENCE,
     SMOOTH_FPFH,
@@ -127,7 +126,8 @@ def test_below_the_gate_the_learned_features_run_and_the_more_confident_is_kept(
 ):
     calls = []
     picked = choose_features([0.0, 0.0])
-    got = smooth_first(_Made(fpfh), (None, None), [], _learned(learned, calls), picked, None)
+    made = _Made(fpfh, rmse=REPRODUCE_RMSE * 1.1)  # no repeats
+    got = smooth_first(made, (None, None), [], _learned(learned, calls), picked, None)
     assert calls == [1] and got.features == kept
     assert got.fallback["features"] == "byoc" and got.fallback["used"] == (kept == "byoc")
     assert got.fallback["first_confidence"] == fpfh and got.fallback["confidence"] == learned
@@ -136,20 +136,22 @@ def test_below_the_gate_the_learned_features_run_and_the_more_confident_is_kept(
 
 @pytest.mark.parametrize("fpfh", [0.9, 0.15])
 def test_without_a_second_opinion_fpfh_is_the_result_above_or_below_the_gate(fpfh):
-    got = smooth_first(_Made(fpfh), (None, None), [], None, choose_features([0.0, 0.0]), None)
+    made = _Made(fpfh, rmse=REPRODUCE_RMSE * 1.1)  # no repeats
+    got = smooth_first(made, (None, None), [], None, choose_features([0.0, 0.0]), None)
     assert got.features == "fpfh" and got.passed == (fpfh >= 0.45) and got.fallback is None
     with pytest.raises(RegistrationError, match="no correspondences"):
         smooth_first(_Made(None), (None, None), [], None, choose_features([0.0, 0.0]), None)
 
 
-def test_a_result_between_the_floor_and_the_gate_that_both_repeats_reproduce_passes():
-    made = _Made(0.3)
+@pytest.mark.parametrize("fpfh", [0.0, 0.1, 0.3])
+def test_a_result_below_the_gate_that_both_repeats_reproduce_passes(fpfh):
+    made = _Made(fpfh)
     got = smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), scale=4.0, seed=5)
     assert got.confidence == REPRODUCED_CONFIDENCE and got.passed
     assert got.T_tgt_src[0, 3] == pytest.approx(0.5)  # in the target's units, as before
     assert made.calls == [(5, ()), (6, ()), (5, (("fitting__estimator", "sc2"),))]
     note = got.reproduced
-    assert note["agree"] and note["model_confidence"] == 0.3
+    assert note["agree"] and note["model_confidence"] == fpfh
     assert [r["name"] for r in note["repeats"]] == ["next seed", "sc2"]
     assert all(r["degrees"] == 0.0 and r["shift"] == 0.0 for r in note["repeats"])
     assert "reproduce" in got.timings and "first" in got.timings
@@ -177,8 +179,8 @@ def test_a_repeat_within_the_tolerance_agrees():
     assert got.reproduced["agree"] and got.passed
 
 
-@pytest.mark.parametrize("fpfh", [REPRODUCE_FLOOR - 0.01, 0.45, 0.9])
-def test_no_repeats_below_the_floor_or_at_the_gate(fpfh):
+@pytest.mark.parametrize("fpfh", [0.45, 0.9])
+def test_no_repeats_at_or_above_the_gate(fpfh):
     made = _Made(fpfh)
     got = smooth_first(made, _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
     assert len(made.calls) == 1 and got.reproduced is None and got.confidence == fpfh
