@@ -693,6 +693,25 @@ def test_the_summary_line_says_whether_the_repeats_reproduced_a_smooth_result(ag
     assert line.endswith("(FPFH features: smooth surfaces, 0 % and 1 % rough)")
 
 
+@pytest.mark.parametrize("agree", [True, False])
+def test_the_summary_line_says_whether_the_repeats_reproduced_a_fallback_result(agree):
+    from types import SimpleNamespace
+
+    from byoc_cli.cli.register import summary_line
+
+    note = {"repeats": [{}, {}], "agree": agree, "model_confidence": 0.12}
+    result = SimpleNamespace(
+        path="global", confidence=0.85 if agree else 0.12, num_inliers=45,
+        num_correspondences=2000, inlier_threshold=0.01, voxel_size=0.005, features="fpfh",
+        fallback={"used": True, "features": "fpfh", "learned_confidence": 0.0},
+        features_choice=None, reproduced=note, init=None, retries=None,
+    )  # fmt: skip
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    head = "(FPFH features: the learned ones reached confidence 0.000"
+    assert line.endswith(f"{head}; reproduced by 2 repeats, confidence 0.120 before)") == agree
+    assert line.endswith(f"{head}; not reproduced by its 2 repeats)") != agree
+
+
 def test_the_summary_line_says_when_a_retry_was_kept():
     from types import SimpleNamespace
 

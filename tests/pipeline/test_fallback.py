@@ -121,3 +121,89 @@ def test_the_learned_features_results_on_laser_scanned_rooms_are_checked_against
     assert not large_panoramas(made, small, small)
     assert not large_panoramas(made, room, SimpleNamespace(cloud=None))
     assert not large_panoramas(Registrar(voxel_size=0.025), room, room)
+
+
+def _scale(radius: float, even_radius: float | None = None):
+    from byoc_cli.pipeline.scale import CloudScale
+
+    return CloudScale(50_000, radius / 200, radius, even_radius=even_radius)
+
+
+@pytest.mark.parametrize(
+    ("radii", "objects"),
+    [
+        ((0.06, 0.05), True),  # a 10 cm object in metres: below the trained size
+        ((60.0, 55.0), True),  # the same in millimetres: above it
+        ((1.0, 1.2), False),  # depth frames and fragments: within it
+        ((0.06, 1.0), False),  # the pair's size (the larger) is within it
+    ],
+)
+def test_objects_out_of_range_are_clouds_outside_the_trained_size(radii, objects):
+    from byoc_cli.pipeline.fallback import objects_out_of_range
+
+    assert objects_out_of_range([_scale(r) for r in radii]) == objects
+
+
+def test_large_panoramas_are_not_objects_out_of_range():  # rooms and LiDAR: their own checks
+    from byoc_cli.pipeline.fallback import objects_out_of_range
+
+    assert not objects_out_of_range([_scale(5.0, 9.0), _scale(5.0, 9.0)])
+    assert not objects_out_of_range([_scale(60.0, 60.0), _scale(60.0)])  # mm, or a room
+    assert objects_out_of_range([_scale(0.06, 0.08), _scale(0.06)])  # centred on its origin
+
+
+class _Fpfh:
+    """The FPFH registrations a :class:`Fallback` stand-in gives its repeats: ``T`` in turn."""
+
+    def __init__(self, repeats):
+        self.repeats, self.calls = list(repeats), []
+
+    def __call__(self, clouds, scales, seed, changes=()):
+        self.calls.append((seed, changes))
+        return _fpfh_registration(0.3, self.repeats.pop(0))
+
+
+def _fpfh_registration(confidence: float, T: np.ndarray, rmse: float = 0.2):
+    from byoc_cli.pipeline.results import Registration
+
+    return Registration(
+        T, confidence, False, 10, 2000, 0.005, 0.05, 100, 100, 0.1, 0.01, "fpfh",
+        "ransac", "multiscale", 1000, 100, 0, None, {"fit": 0.1}, cues={"rmse": rmse},
+    )  # fmt: skip
+
+
+def _features(points: np.ndarray):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(cloud=points, scale=1.0)
+
+
+@pytest.mark.parametrize(("turned", "agree"), [(0.0, True), (90.0, False)])
+def test_a_fallback_result_below_the_gate_is_repeated_and_passes_when_both_agree(turned, agree):
+    from byoc_cli.geometry.transforms import axis_angle_matrix
+    from byoc_cli.pipeline.fallback import Fallback
+    from byoc_cli.pipeline.feature_choice import REPEATS, REPRODUCED_CONFIDENCE
+
+    T = np.eye(4)
+    T[0, 3] = 0.01
+    other = T.copy()
+    other[:3, :3] = axis_angle_matrix(np.array([0.0, 0.0, np.radians(turned)]))
+    fallback = Fallback("auto")
+    fallback.register = _Fpfh([T, other])
+    src = _features(cube(1) * 0.05)
+    got = fallback._repeated(_fpfh_registration(0.05, T), 0.45, src, src, (7, (), None))
+    assert got.reproduced["agree"] == agree and got.reproduced["model_confidence"] == 0.05
+    assert got.confidence == (REPRODUCED_CONFIDENCE if agree else 0.05)
+    assert fallback.register.calls == [(8, ()), (7, REPEATS[1][2])]
+
+
+@pytest.mark.parametrize(("confidence", "rmse"), [(0.5, 0.2), (0.05, 0.3)])
+def test_no_repeats_above_the_gate_or_with_a_large_residual(confidence, rmse):
+    from byoc_cli.pipeline.fallback import Fallback
+
+    fallback = Fallback("auto")
+    fallback.register = _Fpfh([])
+    first = _fpfh_registration(confidence, np.eye(4), rmse)
+    src = _features(cube(1))
+    got = fallback._repeated(first, 0.45, src, src, (0, (), None))
+    assert got is first and fallback.register.calls == []

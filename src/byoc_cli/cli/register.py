@@ -209,7 +209,7 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
     if fallback and fallback["used"] and fallback["features"] == "fpfh":
         line += (
             f" (FPFH features: the learned ones reached confidence "
-            f"{fallback['learned_confidence']:.3f})"
+            f"{fallback['learned_confidence']:.3f}{_reproduced(result.reproduced)})"
         )
     elif result.features_choice and result.features_choice["first"] == "fpfh":
         rough = " and ".join(f"{100 * r:.0f} %" for r in result.features_choice["rough_share"])
@@ -231,7 +231,8 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
 
 
 def _reproduced(note: dict | None) -> str:
-    """What the repeats of a smooth pair's FPFH result said, for :func:`summary_line`."""
+    """What the repeats of an FPFH result said (a smooth pair's, or the fallback's of an
+    object), for :func:`summary_line`."""
     if note is None:
         return ""
     if note["agree"]:

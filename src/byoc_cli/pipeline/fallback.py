@@ -11,6 +11,14 @@ deg fits its floor, ceiling and walls, and no confidence tells it; a turn that f
 stands in the room clearly better is taken instead. On the 14 simulated rooms of
 docs/rooms.md this takes FPFH's voxel from 5-13 cm to 11-16 cm and the default from 6 right
 and 2 wrong with exit 0 to 10 and 0.
+
+On objects outside the trained size (:func:`objects_out_of_range`: laser scans of small
+objects, in metres or millimetres) the learned features often match nothing and FPFH
+registers the pair below the gate; a result with a small residual is then fitted twice more,
+as a smooth pair's (:func:`~byoc_cli.pipeline.feature_choice.reproduce`), and passes when both
+repeats land on it. Depth frames and fragments, which are within the trained size, are not
+repeated: on a camera circling a cabinet the repeats land again on a pose near the identity
+(the frame's own pattern matched to itself) as readily as on the truth.
 """
 
 from __future__ import annotations
@@ -98,9 +106,33 @@ class Fallback:
         timings = {**first.timings, "fallback": seconds}
         if not used:
             return first._replace(timings=timings, fallback=note)
+        if scales is not None and objects_out_of_range(scales):
+            how = (seed, changes, scales)
+            second = self._repeated(second, learned.fallback_below, src, tgt, how)
         T = second.T_tgt_src.copy()
         T[:3, 3] /= src.scale
         return second._replace(T_tgt_src=T, timings=timings, fallback=note, retries=first.retries)
+
+    def _repeated(
+        self, second: Registration, gate: float, src: Features, tgt: Features, how: tuple
+    ) -> Registration:
+        """``second`` (FPFH's registration, T in metres) with its repeats
+        (:func:`~byoc_cli.pipeline.feature_choice.reproduce`) when it is below ``gate`` with a
+        small residual (:func:`~byoc_cli.pipeline.feature_choice.worth_repeating`); ``how``:
+        the ``(seed, changes, scales)`` it was registered with."""
+        from byoc_cli.pipeline.feature_choice import reproduce, worth_repeating
+
+        if not worth_repeating(second, gate):
+            return second
+        seed, changes, scales = how
+        clouds = (src.cloud, tgt.cloud)
+        return reproduce(
+            second,
+            lambda offset, more: self.register(
+                clouds, scales, (seed + offset) % 2**64, changes + more
+            ),
+            np.asarray(src.cloud).mean(axis=0),
+        )
 
     def register(
         self,
@@ -132,6 +164,21 @@ def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
 
     panorama = any(s.even_radius is not None for s in scales)
     return LARGE_SCANS if panorama and size_radius(tuple(scales)) > TRAINED_RADIUS[1] else ()
+
+
+def objects_out_of_range(scales: list) -> bool:
+    """Whether clouds of the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` are
+    objects outside the trained size: their size (:func:`~byoc_cli.pipeline.scale.size_radius`)
+    lies below :data:`~byoc_cli.pipeline.scale.TRAINED_RADIUS` (an object of 10 to 30 cm in
+    metres), or above it with no cloud a panorama (the same in millimetres, in its scanner's
+    frame; a panorama that large is a room or a LiDAR scan). Depth frames and fragments lie
+    within it."""
+    from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius  # torch: not on import
+
+    low, high = TRAINED_RADIUS
+    size = size_radius(tuple(scales))
+    panorama = any(s.even_radius is not None for s in scales)
+    return size < low or (size > high and not panorama)
 
 
 def large_panoramas(made: Any, src: Features, tgt: Features) -> bool:

@@ -165,7 +165,7 @@ def smooth_first(
         first = None
     seconds = time.perf_counter() - start
     picked = choice.as_dict()
-    if first is not None and _worth_repeating(first, made.fallback_below):
+    if first is not None and worth_repeating(first, made.fallback_below):
         repeat = made.recipe.seed if seed is None else seed
         first = reproduce(
             first,
@@ -195,9 +195,10 @@ def smooth_first(
     return kept._replace(timings=timings, fallback=note, features_choice=picked, passed=passed)
 
 
-def _worth_repeating(first: Registration, gate: float) -> bool:
-    """Whether ``first`` (FPFH's result of a smooth pair) is below the ``gate`` and the repeats
-    could raise it: its residual is at most :data:`REPRODUCE_RMSE`."""
+def worth_repeating(first: Registration, gate: float) -> bool:
+    """Whether ``first`` (FPFH's result of a smooth pair, or the fallback's of an object) is
+    below the ``gate`` and the repeats could raise it: its residual is at most
+    :data:`REPRODUCE_RMSE`."""
     rmse = (first.cues or {}).get("rmse", float("inf"))
     return first.confidence < gate and rmse <= REPRODUCE_RMSE
 
@@ -208,7 +209,9 @@ def reproduce(
     centroid: np.ndarray,
     scale: float = 1.0,
 ) -> Registration:
-    """A smooth pair's FPFH result below the gate, fitted twice more (:data:`REPEATS`).
+    """An FPFH result below the gate (a smooth pair's, or the fallback's of an object outside
+    the trained size: :meth:`~byoc_cli.pipeline.fallback.Fallback.second_opinion`), fitted
+    twice more (:data:`REPEATS`).
 
     On smooth surfaces FPFH's confidence is low for right and wrong results alike
     (``docs/objects.md``): of its results below the gate on the smooth development sets,
@@ -219,7 +222,8 @@ def reproduce(
     centroid) takes :data:`REPRODUCED_CONFIDENCE` when that is higher; the others keep theirs.
 
     Args:
-        first: FPFH's registration of the pair, ``T_tgt_src`` in the input's units.
+        first: FPFH's registration of the pair, ``T_tgt_src`` in the input's units (times
+            ``scale``: metres).
         fit: ``fit(seed_offset, changes)`` registers the pair again (T in metres), raising
             :class:`~byoc_cli.errors.RegistrationError` when it cannot.
         centroid: ``(3,)`` the source's centroid in metres.
