@@ -133,23 +133,16 @@ def _scale(radius: float, even_radius: float | None = None):
     ("radii", "objects"),
     [
         ((0.06, 0.05), True),  # a 10 cm object in metres: below the trained size
-        ((60.0, 55.0), True),  # the same in millimetres: above it
         ((1.0, 1.2), False),  # depth frames and fragments: within it
         ((0.06, 1.0), False),  # the pair's size (the larger) is within it
+        ((60.0, 55.0), False),  # millimetres, or a georeferenced LiDAR scan: above it
     ],
 )
-def test_objects_out_of_range_are_clouds_outside_the_trained_size(radii, objects):
-    from byoc_cli.pipeline.fallback import objects_out_of_range
+def test_small_objects_are_clouds_below_the_trained_size(radii, objects):
+    from byoc_cli.pipeline.fallback import small_objects
 
-    assert objects_out_of_range([_scale(r) for r in radii]) == objects
-
-
-def test_large_panoramas_are_not_objects_out_of_range():  # rooms and LiDAR: their own checks
-    from byoc_cli.pipeline.fallback import objects_out_of_range
-
-    assert not objects_out_of_range([_scale(5.0, 9.0), _scale(5.0, 9.0)])
-    assert not objects_out_of_range([_scale(60.0, 60.0), _scale(60.0)])  # mm, or a room
-    assert objects_out_of_range([_scale(0.06, 0.08), _scale(0.06)])  # centred on its origin
+    assert small_objects([_scale(r) for r in radii]) == objects
+    assert small_objects([_scale(r, r * 1.3) for r in radii]) == objects  # panoramas alike
 
 
 class _Fpfh:

@@ -12,13 +12,15 @@ stands in the room clearly better is taken instead. On the 14 simulated rooms of
 docs/rooms.md this takes FPFH's voxel from 5-13 cm to 11-16 cm and the default from 6 right
 and 2 wrong with exit 0 to 10 and 0.
 
-On objects outside the trained size (:func:`objects_out_of_range`: laser scans of small
-objects, in metres or millimetres) the learned features often match nothing and FPFH
+On objects smaller than the trained size (:func:`small_objects`: laser scans of objects of
+10 to 30 cm, in metres) the learned features often match nothing and FPFH
 registers the pair below the gate; a result with a small residual is then fitted twice more,
 as a smooth pair's (:func:`~byoc_cli.pipeline.feature_choice.reproduce`), and passes when both
 repeats land on it. Depth frames and fragments, which are within the trained size, are not
 repeated: on a camera circling a cabinet the repeats land again on a pose near the identity
-(the frame's own pattern matched to itself) as readily as on the truth.
+(the frame's own pattern matched to itself) as readily as on the truth; nor are scans larger
+than it, whose size alone does not tell an object in millimetres from a georeferenced LiDAR
+scan (sampled along rings, a pattern of its own).
 """
 
 from __future__ import annotations
@@ -106,7 +108,7 @@ class Fallback:
         timings = {**first.timings, "fallback": seconds}
         if not used:
             return first._replace(timings=timings, fallback=note)
-        if scales is not None and objects_out_of_range(scales):
+        if scales is not None and small_objects(scales):
             how = (seed, changes, scales)
             second = self._repeated(second, learned.fallback_below, src, tgt, how)
         T = second.T_tgt_src.copy()
@@ -166,19 +168,14 @@ def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
     return LARGE_SCANS if panorama and size_radius(tuple(scales)) > TRAINED_RADIUS[1] else ()
 
 
-def objects_out_of_range(scales: list) -> bool:
+def small_objects(scales: list) -> bool:
     """Whether clouds of the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` are
-    objects outside the trained size: their size (:func:`~byoc_cli.pipeline.scale.size_radius`)
-    lies below :data:`~byoc_cli.pipeline.scale.TRAINED_RADIUS` (an object of 10 to 30 cm in
-    metres), or above it with no cloud a panorama (the same in millimetres, in its scanner's
-    frame; a panorama that large is a room or a LiDAR scan). Depth frames and fragments lie
-    within it."""
+    smaller than the trained size: their size (:func:`~byoc_cli.pipeline.scale.size_radius`)
+    lies below :data:`~byoc_cli.pipeline.scale.TRAINED_RADIUS` (objects of 10 to 30 cm in
+    metres; depth frames and fragments lie within it, rooms and LiDAR above it)."""
     from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius  # torch: not on import
 
-    low, high = TRAINED_RADIUS
-    size = size_radius(tuple(scales))
-    panorama = any(s.even_radius is not None for s in scales)
-    return size < low or (size > high and not panorama)
+    return size_radius(tuple(scales)) < TRAINED_RADIUS[0]
 
 
 def large_panoramas(made: Any, src: Features, tgt: Features) -> bool:
