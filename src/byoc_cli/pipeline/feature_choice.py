@@ -209,9 +209,9 @@ def reproduce(
     centroid: np.ndarray,
     scale: float = 1.0,
 ) -> Registration:
-    """An FPFH result below the gate (a smooth pair's, or the fallback's of an object outside
-    the trained size: :meth:`~byoc_cli.pipeline.fallback.Fallback.second_opinion`), fitted
-    twice more (:data:`REPEATS`).
+    """An FPFH result below the gate (a smooth pair's, or the fallback's of objects below the
+    trained size: :meth:`~byoc_cli.pipeline.fallback.Fallback.second_opinion`), fitted twice
+    more (:data:`REPEATS`).
 
     On smooth surfaces FPFH's confidence is low for right and wrong results alike
     (``docs/objects.md``): of its results below the gate on the smooth development sets,
