@@ -37,6 +37,10 @@ from byoc_cli.pipeline.results import Features, Registration
 #: the fallback's recipe changes on scans larger than the trained range (FPFH's size): the
 #: structure check of its result (``matching.turns``: FPFH tries no turned sources)
 LARGE_SCANS = (("matching__turns", True),)
+#: recipe changes that :meth:`~byoc_cli.pipeline.registrar.Registrar.match` takes per call
+#: (its keywords): registrations that differ only in these (a result and its ``sc2`` repeat)
+#: share one registrar, and so the features of their clouds
+PER_CALL = {"fitting__estimator": "estimator"}
 
 
 class Fallback:
@@ -151,9 +155,11 @@ class Fallback:
         Raises:
             RegistrationError: FPFH cannot register them.
         """
-        fpfh = self.registrar(changes)
+        kept = tuple((path, value) for path, value in changes if path not in PER_CALL)
+        settings = {PER_CALL[path]: value for path, value in changes if path in PER_CALL}
+        fpfh = self.registrar(kept)
         scales = scales if fpfh.auto_voxel else None
-        return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed)
+        return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed, **settings)
 
 
 def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from byoc_cli.geometry.structure import clutter_shares, structure, turned_alternatives
+from byoc_cli.pipeline.local import correction
 from byoc_cli.pipeline.restarts import RESTART_POINTS, refine_starts
 
 #: a turned rival whose clutter fit is lower than the result's by less than this (or higher)
@@ -121,11 +122,8 @@ def _same_place(T_a: np.ndarray, T_b: np.ndarray, points: np.ndarray, voxel: flo
     """Whether ``T_a`` and ``T_b (4, 4)`` turn within :data:`SAME_DEG` of each other and move
     the centre of ``points (N, 3)`` to within :data:`SAME_VOXELS` voxels of each other (a
     turned start refined back onto the result: a smooth object's turns, not a rival)."""
-    R = T_a[:3, :3] @ T_b[:3, :3].T
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))))
-    centre = points.mean(axis=0)
-    apart = (T_a[:3, :3] - T_b[:3, :3]) @ centre + T_a[:3, 3] - T_b[:3, 3]
-    return angle < SAME_DEG and float(np.linalg.norm(apart)) < SAME_VOXELS * voxel
+    degrees, apart = correction(T_a, T_b, points.mean(axis=0))
+    return degrees < SAME_DEG and apart < SAME_VOXELS * voxel
 
 
 def structure_rival(
