@@ -693,6 +693,25 @@ def test_the_summary_line_says_whether_the_repeats_reproduced_a_smooth_result(ag
     assert line.endswith("(FPFH features: smooth surfaces, 0 % and 1 % rough)")
 
 
+def test_the_summary_line_says_when_fpfh_went_first_for_a_small_object():
+    from types import SimpleNamespace
+
+    from byoc_cli.cli.register import summary_line
+
+    choice = {"first": "fpfh", "rough_share": [0.4, 0.9], "smooth_share": 0.125}
+    result = SimpleNamespace(
+        path="global", confidence=0.9, num_inliers=45, num_correspondences=2000,
+        inlier_threshold=0.01, voxel_size=0.005, fallback=None, features="fpfh",
+        features_choice={**choice, "small_object": True}, reproduced=None, init=None,
+        retries=None,
+    )  # fmt: skip
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    assert line.endswith("(FPFH features: an object below the trained size, 40 % and 90 % rough)")
+    result.features_choice = {**choice, "rough_share": [0.0, 0.1], "small_object": True}
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")  # smooth says why
+    assert line.endswith("(FPFH features: smooth surfaces, 0 % and 10 % rough)")
+
+
 @pytest.mark.parametrize("agree", [True, False])
 def test_the_summary_line_says_whether_the_repeats_reproduced_a_fallback_result(agree):
     from types import SimpleNamespace

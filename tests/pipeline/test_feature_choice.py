@@ -20,6 +20,7 @@ from byoc_cli.pipeline.feature_choice import (
     SMOOTH_SHARE,
     applies,
     choose_features,
+    features_for,
     smooth_first,
 )
 from byoc_cli.pipeline.local import correction
@@ -35,6 +36,24 @@ def test_fpfh_goes_first_only_when_both_clouds_are_smooth():
     picked = choose_features([0.01, 0.02]).as_dict()
     assert picked["first"] == "fpfh" and picked["rough_share"] == [0.01, 0.02]
     assert picked["smooth_share"] == SMOOTH_SHARE and "FPFH features" in picked["reason"]
+
+
+def test_an_object_below_the_trained_size_starts_with_fpfh_rough_or_not():
+    rough = choose_features([0.8, 0.7], small=True)
+    assert rough.first == "fpfh" and rough.small_object
+    assert rough.reason.startswith("an object below the trained size (80 %, 70 %")
+    assert rough.as_dict()["small_object"] is True
+    smooth = choose_features([0.01, 0.02], small=True)  # smooth says why first
+    assert smooth.first == "fpfh" and smooth.reason.startswith("smooth surfaces")
+    assert choose_features([0.8, 0.7]).as_dict()["small_object"] is False
+
+
+@pytest.mark.parametrize(("radius", "first"), [(0.05, "fpfh"), (0.149, "fpfh"), (0.15, "byoc")])
+def test_the_choice_reads_the_size_from_the_clouds_scales(radius, first):
+    made = SimpleNamespace(rough_share=lambda points, voxel: 0.6)
+    scales = [SimpleNamespace(radius=radius, even_radius=None)] * 2
+    got = features_for(made, (np.zeros((5, 3)),) * 2, 0.01, scales)
+    assert got.first == first and got.rough_share == (0.6, 0.6)  # the trained size: 0.15 m
 
 
 def test_only_learned_features_with_an_auto_voxel_and_the_fpfh_fallback_choose():
@@ -227,6 +246,24 @@ def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
     assert got.max_points == 3000 and got.recipe["refinement"]["restarts"] is False
     without = byoc_cli.Registrar(device="cpu", fallback=None).register(smooth, other)
     assert without.features_choice is None and without.features == "byoc"
+
+
+@pytest.mark.slow
+def test_a_noisy_small_object_starts_with_fpfh_and_is_registered():
+    import byoc_cli
+
+    rng = np.random.default_rng(0)
+    noisy = [smooth_scan(k) + rng.normal(0.0, 5e-4, (40000, 3)) for k in (0, 1)]
+    T = np.eye(4)
+    T[:3, :3] = axis_angle_matrix(np.array([0.0, 0.0, np.radians(25.0)]))
+    T[:3, 3] = [0.02, -0.01, 0.03]
+    target = noisy[1] @ T[:3, :3].T + T[:3, 3]
+    got = byoc_cli.Registrar(device="cpu").register(noisy[0], target)
+    assert got.features_choice["first"] == "fpfh" and got.features_choice["small_object"]
+    assert min(got.features_choice["rough_share"]) > SMOOTH_SHARE  # noise reads rough
+    assert got.features == "fpfh" and got.fallback is None and got.passed
+    degrees, shift = correction(got.T_tgt_src, T, noisy[0].mean(axis=0))
+    assert degrees < 2.0 and shift < 0.005
 
 
 @pytest.mark.realdata

@@ -122,7 +122,7 @@ class PairRunner:
             picked = None
             if choice is not None and applies(self.registrar):
                 clouds = (cloud_src[0], cloud_tgt[0])
-                picked = features_for(self.registrar, clouds, choice.voxel_size)
+                picked = features_for(self.registrar, clouds, choice.voxel_size, scales)
 
             def learned(second_opinion: bool = True):
                 src = self._features(cloud_src, voxels[0], timings, "features_src")

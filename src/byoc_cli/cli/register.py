@@ -212,13 +212,12 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
             f"{fallback['learned_confidence']:.3f}{_reproduced(result.reproduced)})"
         )
     elif result.features_choice and result.features_choice["first"] == "fpfh":
-        rough = " and ".join(f"{100 * r:.0f} %" for r in result.features_choice["rough_share"])
+        why = _why_fpfh(result.features_choice)
         if result.features == "fpfh":
-            line += f" (FPFH features: smooth surfaces, {rough} rough"
-            line += f"{_reproduced(result.reproduced)})"
+            line += f" (FPFH features: {why}{_reproduced(result.reproduced)})"
         else:  # the learned features' second opinion was kept
             first = fallback["first_confidence"] or 0.0
-            line += f" (smooth surfaces, {rough} rough; FPFH reached confidence {first:.3f})"
+            line += f" ({why}; FPFH reached confidence {first:.3f})"
     retried = result.retries
     if retried and retried["kept_seed"] is not None and not (fallback and fallback["used"]):
         line += (
@@ -228,6 +227,15 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
     if result.init is not None:
         line += f" (global; {_moved(result.init['correction'], unit)} from --init)"
     return line
+
+
+def _why_fpfh(choice: dict) -> str:
+    """Why FPFH went first (the report's ``features_choice``), for :func:`summary_line`:
+    smooth surfaces, or an object below the trained size, with the clouds' rough shares."""
+    rough = " and ".join(f"{100 * r:.0f} %" for r in choice["rough_share"])
+    if choice.get("small_object") and max(choice["rough_share"]) > choice["smooth_share"]:
+        return f"an object below the trained size, {rough} rough"
+    return f"smooth surfaces, {rough} rough"
 
 
 def _reproduced(note: dict | None) -> str:

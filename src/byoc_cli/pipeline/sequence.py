@@ -61,7 +61,9 @@ def register_pair(
         choice = made.voxel_for(src_scale, tgt_scale)
         voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
         if applies(made):
-            picked = features_for(made, (src_points, tgt_points), choice.voxel_size)
+            picked = features_for(
+                made, (src_points, tgt_points), choice.voxel_size, (src_scale, tgt_scale)
+            )
     t_choice = time.perf_counter() - t_scale
     steps: dict[str, float] = {}
 
