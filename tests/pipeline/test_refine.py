@@ -332,3 +332,36 @@ def test_the_steps_nearest_points_are_those_of_the_cell_index(generator):
     assert (got.index == expected.index.numpy()).all()
     assert (got.distance2 == expected.distance2.numpy()).all()
     assert (got.index >= 0).mean() > 0.5  # most points have a neighbour to compare
+
+
+def _states(period: int, count: int, noise: float = 0.0) -> list[tuple]:
+    """``count`` steps whose poses go round a cycle of ``period`` after two lead-in steps,
+    each with its step number as the fitness (to tell which entry was taken)."""
+    import numpy as np
+
+    poses = [np.eye(4) + 0.01 * k for k in range(period)]
+    out = []
+    for n in range(count):
+        T = np.eye(4) * 5.0 if n < 2 else poses[(n - 2) % period] + noise * n
+        out.append((T, float(n), 0.1, 6, 0.5))
+    return out
+
+
+@pytest.mark.parametrize("period", [2, 3, 4, 5, 6])
+def test_a_cycle_of_steps_is_found_once_it_closes_and_not_across_a_search(period):
+    closed = _states(period, 2 + period + 1)  # the last step ends where `period` before it did
+    assert refine_module._cycle(closed, unsearched=period - 1) == period
+    assert refine_module._cycle(closed, unsearched=period - 2) == 0  # a search inside it
+    assert refine_module._cycle(closed[:-1], unsearched=10) == 0  # not closed yet
+    drifting = _states(period, 2 + period + 1, noise=1e-9)  # moves more than rounding
+    assert refine_module._cycle(drifting, unsearched=10) == 0
+
+
+@pytest.mark.parametrize("period", [2, 3, 4, 5, 6])
+@pytest.mark.parametrize("iterations", [12, 13, 29, 30])
+def test_the_end_of_a_cycle_is_the_step_the_level_would_end_with(period, iterations):
+    steps = _states(period, 2 + period + 1)
+    every = _states(period, iterations)  # the level run out, round and round the cycle
+    got = refine_module._cycle_end(steps, period, iterations)
+    assert (got[0] == every[-1][0]).all()
+    assert (got[1] - 2) % period == (every[-1][1] - 2) % period  # the same place in the cycle

@@ -71,6 +71,12 @@ MIN_CORRESPONDENCES = 6
 CANDIDATES = 8
 #: a new search once a source point has moved this many level voxels since the last
 RESEARCH = 1.0
+#: a step that ends within this (every number of ``T``) of where the step two before it
+#: ended closes a cycle of two steps, which the rest of its level would repeat (rounding
+#: moves such a cycle by about 1e-16 a step; the T files' reference allows 1e-12)
+CYCLE = 1e-13
+#: the longest such cycle looked for, in steps
+MAX_CYCLE = 6
 
 
 class Refinement(NamedTuple):
@@ -137,9 +143,12 @@ def refine_multiscale(
         # numpy keeps the interpreter lock where each torch call hands it to the other worker
         p, planes, origin = p.numpy(), (q.numpy(), n.numpy()), index.origin.numpy()
         anchor, candidates, coordinates = None, None, None
-        for _ in range(ITERATIONS):
+        steps: list[tuple] = []  # (T, fitness, rmse, rank, conditioning) after each step
+        searched = -1  # the last step that searched again
+        for i in range(ITERATIONS):
             moved = p @ T[:3, :3].T + T[:3, 3]
             if anchor is None or float(np.abs(moved - anchor).max()) > RESEARCH * size:
+                searched = i
                 found = search_candidates(
                     index, torch.from_numpy(moved), SEARCH_REACH[level], parallel
                 )
@@ -159,7 +168,37 @@ def refine_multiscale(
             angle = math.acos(max(-1.0, min(1.0, (float(np.trace(dT[:3, :3])) - 1) / 2)))
             if angle < TOLERANCE and float(np.linalg.norm(dT[:3, 3])) < TOLERANCE * voxel_size:
                 break
+            steps.append((T, fitness, rmse, rank, conditioning))
+            period = _cycle(steps, i - searched)
+            if period:  # the rest of the level repeats its last `period` steps
+                T, fitness, rmse, rank, conditioning = _cycle_end(steps, period, ITERATIONS)
+                break
     return Refinement(torch.from_numpy(T), rank, fitness, rmse, conditioning)
+
+
+def _cycle(steps: list[tuple], unsearched: int) -> int:
+    """The length (2 to :data:`MAX_CYCLE`) of the cycle that the last of a level's ``steps``
+    (each ``(T (4, 4), ...)`` after a step) closes, ending within :data:`CYCLE` (every
+    number) of where the step that many before it ended; 0: none. On smooth surfaces the
+    nearest points change and change back, and a level goes round such a cycle until its
+    ``ITERATIONS`` run out. A step is a function of the pose and the cached candidates, so
+    when none of the cycle's steps but its first searched again (``unsearched``: the steps
+    since the last search), every later step repeats the one a cycle before it, up to
+    rounding: :func:`refine_multiscale` stops there and takes the state the level would end
+    in."""
+    last = steps[-1][0]
+    for period in range(2, min(MAX_CYCLE, len(steps) - 1, unsearched + 1) + 1):
+        if float(np.abs(last - steps[-1 - period][0]).max()) <= CYCLE:
+            return period
+    return 0
+
+
+def _cycle_end(steps: list[tuple], period: int, iterations: int) -> tuple:
+    """The entry of ``steps`` (one per step of a level, the last closing a cycle of
+    ``period`` steps: :func:`_cycle`) that the level's step ``iterations - 1`` would end
+    with, going round the cycle."""
+    left = (iterations - len(steps)) % period  # the steps still to run, round the cycle
+    return steps[-1 - (period - left) % period]
 
 
 def measure_fit(
