@@ -16,7 +16,10 @@ On objects smaller than the trained size (:func:`small_objects`: laser scans of 
 10 to 30 cm, in metres) the learned features often match nothing and FPFH
 registers the pair below the gate; a result with a small residual is then fitted twice more,
 as a smooth pair's (:func:`~byoc_cli.pipeline.feature_choice.reproduce`), and passes when both
-repeats land on it. Depth frames and fragments, which are within the trained size, are not
+repeats land on it. ``register`` and ``register-batch`` start such pairs with FPFH
+(:mod:`~byoc_cli.pipeline.feature_choice`); this serves where the learned features went
+first all the same (:meth:`~byoc_cli.pipeline.registrar.Registrar.match` on features
+extracted apart). Depth frames and fragments, which are within the trained size, are not
 repeated: on a camera circling a cabinet the repeats land again on a pose near the identity
 (the frame's own pattern matched to itself) as readily as on the truth; nor are scans larger
 than it, whose size alone does not tell an object in millimetres from a georeferenced LiDAR
