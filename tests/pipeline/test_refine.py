@@ -350,11 +350,11 @@ def _states(period: int, count: int, noise: float = 0.0) -> list[tuple]:
 @pytest.mark.parametrize("period", [2, 3, 4, 5, 6])
 def test_a_cycle_of_steps_is_found_once_it_closes_and_not_across_a_search(period):
     closed = _states(period, 2 + period + 1)  # the last step ends where `period` before it did
-    assert refine_module._cycle(closed, unsearched=period - 1) == period
-    assert refine_module._cycle(closed, unsearched=period - 2) == 0  # a search inside it
-    assert refine_module._cycle(closed[:-1], unsearched=10) == 0  # not closed yet
+    assert refine_module.cycle_period(closed, unsearched=period - 1) == period
+    assert refine_module.cycle_period(closed, unsearched=period - 2) == 0  # a search inside it
+    assert refine_module.cycle_period(closed[:-1], unsearched=10) == 0  # not closed yet
     drifting = _states(period, 2 + period + 1, noise=1e-9)  # moves more than rounding
-    assert refine_module._cycle(drifting, unsearched=10) == 0
+    assert refine_module.cycle_period(drifting, unsearched=10) == 0
 
 
 @pytest.mark.parametrize("period", [2, 3, 4, 5, 6])
@@ -362,6 +362,28 @@ def test_a_cycle_of_steps_is_found_once_it_closes_and_not_across_a_search(period
 def test_the_end_of_a_cycle_is_the_step_the_level_would_end_with(period, iterations):
     steps = _states(period, 2 + period + 1)
     every = _states(period, iterations)  # the level run out, round and round the cycle
-    got = refine_module._cycle_end(steps, period, iterations)
+    got = refine_module.cycle_end(steps, period, iterations)
     assert (got[0] == every[-1][0]).all()
     assert (got[1] - 2) % period == (every[-1][1] - 2) % period  # the same place in the cycle
+
+
+def test_a_start_that_closes_a_cycle_stops_with_the_pose_its_level_would_end_with():
+    import numpy as np
+
+    going, cycling = 0, 1
+    T = np.stack([np.eye(4), np.eye(4)])
+    fitness = np.array([0.5, 0.5])
+    a, b = np.eye(4) * 2.0, np.eye(4) * 3.0
+    history = {going: [(np.eye(4) * 7.0, 0.1)] * 2, cycling: [(a, 0.2), (b, 0.3)]}
+    T[cycling], fitness[cycling] = a, 0.4  # step 2 of its level ends where step 0 did
+    searched = {going: 0, cycling: 0}
+    left = restarts_module._out_of_cycles(np.array([0, 1]), T, fitness, history, 2, searched)
+    assert left.tolist() == [going]
+    every = [a, b] * 15  # the level run out: its step 29 (the 30th) ends at b
+    assert (T[cycling] == every[refine_module.ITERATIONS - 1]).all() and fitness[cycling] == 0.3
+    searched[going] = 3  # a search at this step: a cycle may not be read across it
+    history[going] = [(a, 0.2), (b, 0.3)]
+    T[going] = a
+    assert restarts_module._out_of_cycles(
+        np.array([0]), T, fitness, history, 3, searched
+    ).tolist() == [going]

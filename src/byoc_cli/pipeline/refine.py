@@ -169,14 +169,14 @@ def refine_multiscale(
             if angle < TOLERANCE and float(np.linalg.norm(dT[:3, 3])) < TOLERANCE * voxel_size:
                 break
             steps.append((T, fitness, rmse, rank, conditioning))
-            period = _cycle(steps, i - searched)
+            period = cycle_period(steps, i - searched)
             if period:  # the rest of the level repeats its last `period` steps
-                T, fitness, rmse, rank, conditioning = _cycle_end(steps, period, ITERATIONS)
+                T, fitness, rmse, rank, conditioning = cycle_end(steps, period, ITERATIONS)
                 break
     return Refinement(torch.from_numpy(T), rank, fitness, rmse, conditioning)
 
 
-def _cycle(steps: list[tuple], unsearched: int) -> int:
+def cycle_period(steps: list[tuple], unsearched: int) -> int:
     """The length (2 to :data:`MAX_CYCLE`) of the cycle that the last of a level's ``steps``
     (each ``(T (4, 4), ...)`` after a step) closes, ending within :data:`CYCLE` (every
     number) of where the step that many before it ended; 0: none. On smooth surfaces the
@@ -193,9 +193,9 @@ def _cycle(steps: list[tuple], unsearched: int) -> int:
     return 0
 
 
-def _cycle_end(steps: list[tuple], period: int, iterations: int) -> tuple:
+def cycle_end(steps: list[tuple], period: int, iterations: int) -> tuple:
     """The entry of ``steps`` (one per step of a level, the last closing a cycle of
-    ``period`` steps: :func:`_cycle`) that the level's step ``iterations - 1`` would end
+    ``period`` steps: :func:`cycle_period`) that the level's step ``iterations - 1`` would end
     with, going round the cycle."""
     left = (iterations - len(steps)) % period  # the steps still to run, round the cycle
     return steps[-1 - (period - left) % period]

@@ -23,6 +23,8 @@ from byoc_cli.pipeline.refine import (
     MIN_CORRESPONDENCES,
     RESEARCH,
     TOLERANCE,
+    cycle_end,
+    cycle_period,
     search_candidates,
 )
 from byoc_cli.pipeline.refine_levels import (
@@ -127,7 +129,7 @@ def refine_starts(
     """:func:`refine_multiscale` from each of ``starts (S, 4, 4)`` at once: every step moves
     all the starts still moving with one nearest-point search and one
     :func:`point_to_plane_steps` (a start stops at a level as it would alone: converged,
-    too few correspondences, or ``ITERATIONS`` steps). The ends agree with
+    too few correspondences, a cycle closed, or ``ITERATIONS`` steps). The ends agree with
     :func:`refine_multiscale`'s up to rounding.
 
     Args: as :func:`refine_multiscale` (default degeneracy and sliding); ``parallel``
@@ -149,11 +151,12 @@ def refine_starts(
         p, q, n = p.numpy(), q.numpy(), n.numpy()
         search = _StartSearch(index, SEARCH_REACH[level], RESEARCH * size, parallel)
         moving = np.arange(len(T))
-        for _ in range(ITERATIONS):
+        history: dict[int, list[tuple]] = {s: [] for s in moving.tolist()}
+        for i in range(ITERATIONS):
             if len(moving) == 0:
                 break
             moved = p @ T[moving, :3, :3].transpose(0, 2, 1) + T[moving, None, :3, 3]  # (A, K, 3)
-            near = search.nearest(moving, moved)
+            near = search.nearest(moving, moved, i)
             ok = near.distance2 <= dist**2  # (A, K)
             fitness[moving] = ok.mean(1)
             enough = ok.sum(1) >= MIN_CORRESPONDENCES  # fewer: the start stops at this level
@@ -165,7 +168,32 @@ def refine_starts(
             angle = np.arccos(np.clip(cos, -1.0, 1.0))
             shift = np.linalg.norm(steps[:, :3, 3], axis=1)
             moving = moving[~((angle < TOLERANCE) & (shift < TOLERANCE * voxel_size))]
+            moving = _out_of_cycles(moving, T, fitness, history, i, search.searched)
     return torch.from_numpy(T), torch.from_numpy(fitness)
+
+
+def _out_of_cycles(
+    moving: np.ndarray,
+    T: np.ndarray,
+    fitness: np.ndarray,
+    history: dict[int, list[tuple]],
+    step: int,
+    searched: dict[int, int],
+) -> np.ndarray:
+    """The starts of ``moving (A,)`` that go on after ``step`` of a level: each one's pose
+    ``T[s] (4, 4)`` and the ``fitness[s]`` it was stepped from join its ``history``, and a
+    start that closes a cycle (:func:`~byoc_cli.pipeline.refine.cycle_period`, no search
+    since its first step: ``searched``, the step of each start's last search) takes the
+    pose and fitness the level would end it with (in place) and stops, as
+    :func:`~byoc_cli.pipeline.refine.refine_multiscale` does."""
+    going = np.ones(len(moving), dtype=bool)
+    for a, s in enumerate(moving.tolist()):
+        history[s].append((T[s].copy(), fitness[s]))
+        period = cycle_period(history[s], step - searched[s])
+        if period:
+            T[s], fitness[s] = cycle_end(history[s], period, ITERATIONS)
+            going[a] = False
+    return moving[going]
 
 
 class _StartSearch:
@@ -177,10 +205,11 @@ class _StartSearch:
         self.origin = index.origin.numpy()
         self.anchor: dict[int, np.ndarray] = {}
         self.candidates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.searched: dict[int, int] = {}  # the step of each start's last search
 
-    def nearest(self, starts: np.ndarray, moved: np.ndarray) -> Nearest:
-        """:class:`Nearest` of ``moved (A, K, 3)``, the points of ``starts (A,)``, as
-        ``(A, K)`` arrays."""
+    def nearest(self, starts: np.ndarray, moved: np.ndarray, step: int = 0) -> Nearest:
+        """:class:`Nearest` of ``moved (A, K, 3)``, the points of ``starts (A,)`` at the
+        level's ``step``, as ``(A, K)`` arrays."""
         ids = starts.tolist()
         stale = [
             a
@@ -196,6 +225,7 @@ class _StartSearch:
             size = len(found) // len(stale)
             for k, a in enumerate(stale):
                 self.anchor[ids[a]] = moved[a]
+                self.searched[ids[a]] = step
                 rows = slice(k * size, (k + 1) * size)
                 self.candidates[ids[a]] = (found[rows], coordinates[:, rows])
         candidates = np.concatenate([self.candidates[s][0] for s in ids])
