@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -177,7 +178,7 @@ def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
     return LARGE_SCANS if panorama and size_radius(tuple(scales)) > TRAINED_RADIUS[1] else ()
 
 
-def small_objects(scales: list) -> bool:
+def small_objects(scales: Sequence) -> bool:
     """Whether clouds of the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` are
     smaller than the trained size: their size (:func:`~byoc_cli.pipeline.scale.size_radius`)
     lies below :data:`~byoc_cli.pipeline.scale.TRAINED_RADIUS` (objects of 10 to 30 cm in

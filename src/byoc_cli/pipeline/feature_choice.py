@@ -140,7 +140,7 @@ def features_for(
     from byoc_cli.pipeline.fallback import small_objects
 
     rough = [made.rough_share(points, voxel_size) for points in clouds]
-    return choose_features(rough, small_objects(list(scales)))
+    return choose_features(rough, small_objects(scales))
 
 
 def smooth_first(

@@ -71,9 +71,10 @@ MIN_CORRESPONDENCES = 6
 CANDIDATES = 8
 #: a new search once a source point has moved this many level voxels since the last
 RESEARCH = 1.0
-#: a step that ends within this (every number of ``T``) of where the step two before it
-#: ended closes a cycle of two steps, which the rest of its level would repeat (rounding
-#: moves such a cycle by about 1e-16 a step; the T files' reference allows 1e-12)
+#: a step that ends within this (every number of ``T``) of where the step 2 to
+#: :data:`MAX_CYCLE` steps before it ended closes a cycle, which the rest of its level would
+#: repeat (rounding moves such a cycle by about 1e-16 a step; the T files' reference allows
+#: 1e-12)
 CYCLE = 1e-13
 #: the longest such cycle looked for, in steps
 MAX_CYCLE = 6

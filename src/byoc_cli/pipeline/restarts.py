@@ -207,7 +207,7 @@ class _StartSearch:
         self.candidates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.searched: dict[int, int] = {}  # the step of each start's last search
 
-    def nearest(self, starts: np.ndarray, moved: np.ndarray, step: int = 0) -> Nearest:
+    def nearest(self, starts: np.ndarray, moved: np.ndarray, step: int) -> Nearest:
         """:class:`Nearest` of ``moved (A, K, 3)``, the points of ``starts (A,)`` at the
         level's ``step``, as ``(A, K)`` arrays."""
         ids = starts.tolist()
