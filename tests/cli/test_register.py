@@ -659,8 +659,8 @@ def test_init_options_are_checked_as_usage_errors(runner, tmp_path):
 
 @pytest.mark.slow
 def test_a_smooth_pair_is_registered_with_fpfh_and_the_report_says_why(runner, tmp_path):
-    write_ply(tmp_path / "a.ply", smooth_scan(0))
-    write_ply(tmp_path / "b.ply", smooth_scan(1))
+    write_ply(tmp_path / "a.ply", smooth_scan(0) * 10)  # 2 m long: in the trained size
+    write_ply(tmp_path / "b.ply", smooth_scan(1) * 10)
     report = tmp_path / "r.json"
     args = ["register", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--json", str(report)]
     run = runner.invoke(cli, [*args, "-o", str(tmp_path / "T.txt")])
@@ -710,6 +710,9 @@ def test_the_summary_line_says_when_fpfh_went_first_for_a_small_object():
     result.features_choice = {**choice, "rough_share": [0.0, 0.1], "small_object": True}
     line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")  # smooth says why
     assert line.endswith("(FPFH features: smooth surfaces, 0 % and 10 % rough)")
+    result.features_choice = {**choice, "rough_share": [], "small_object": True}
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")  # shares not measured
+    assert line.endswith("(FPFH features: an object below the trained size)")
 
 
 @pytest.mark.parametrize("agree", [True, False])

@@ -46,14 +46,29 @@ def test_an_object_below_the_trained_size_starts_with_fpfh_rough_or_not():
     smooth = choose_features([0.01, 0.02], small=True)  # smooth says why first
     assert smooth.first == "fpfh" and smooth.reason.startswith("smooth surfaces")
     assert choose_features([0.8, 0.7]).as_dict()["small_object"] is False
+    unmeasured = choose_features((), small=True)  # a small pair needs no shares
+    assert unmeasured.first == "fpfh" and unmeasured.small_object
+    assert unmeasured.reason.startswith("an object below the trained size: FPFH features")
+    assert unmeasured.as_dict()["rough_share"] == []
 
 
 @pytest.mark.parametrize(("radius", "first"), [(0.05, "fpfh"), (0.149, "fpfh"), (0.15, "byoc")])
 def test_the_choice_reads_the_size_from_the_clouds_scales(radius, first):
-    made = SimpleNamespace(rough_share=lambda points, voxel: 0.6)
+    measured = []
+
+    def rough_share(points, voxel):
+        measured.append(voxel)
+        return 0.6
+
+    made = SimpleNamespace(rough_share=rough_share)
     scales = [SimpleNamespace(radius=radius, even_radius=None)] * 2
     got = features_for(made, (np.zeros((5, 3)),) * 2, 0.01, scales)
-    assert got.first == first and got.rough_share == (0.6, 0.6)  # the trained size: 0.15 m
+    assert got.first == first  # the trained size: 0.15 m
+    small = first == "fpfh"
+    assert got.small_object is small
+    # the shares of a small pair are not measured: it starts with FPFH whatever they are
+    assert got.rough_share == (() if small else (0.6, 0.6))
+    assert measured == ([] if small else [0.01, 0.01])
 
 
 def test_only_learned_features_with_an_auto_voxel_and_the_fpfh_fallback_choose():
@@ -238,9 +253,11 @@ def test_when_neither_registers_the_learned_features_error_is_raised():
 def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
     import byoc_cli
 
-    smooth, other = smooth_scan(0), smooth_scan(1)
+    # 2 m long: inside the trained size, so its smoothness (not its size) sends it to FPFH
+    smooth, other = smooth_scan(0) * 10, smooth_scan(1) * 10
     got = byoc_cli.Registrar(device="cpu").register(smooth, other)
     assert got.features_choice["first"] == "fpfh" and got.features == "fpfh"
+    assert not got.features_choice["small_object"]
     assert max(got.features_choice["rough_share"]) <= SMOOTH_SHARE
     assert "restarts" not in got.timings and got.cues["restart_return"] == 1.0
     assert got.max_points == 3000 and got.recipe["refinement"]["restarts"] is False
@@ -260,7 +277,7 @@ def test_a_noisy_small_object_starts_with_fpfh_and_is_registered():
     target = noisy[1] @ T[:3, :3].T + T[:3, 3]
     got = byoc_cli.Registrar(device="cpu").register(noisy[0], target)
     assert got.features_choice["first"] == "fpfh" and got.features_choice["small_object"]
-    assert min(got.features_choice["rough_share"]) > SMOOTH_SHARE  # noise reads rough
+    assert got.features_choice["rough_share"] == []  # small: FPFH whatever the noise reads
     assert got.features == "fpfh" and got.fallback is None and got.passed
     degrees, shift = correction(got.T_tgt_src, T, noisy[0].mean(axis=0))
     assert degrees < 2.0 and shift < 0.005

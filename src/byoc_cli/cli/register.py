@@ -231,9 +231,13 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
 
 def _why_fpfh(choice: dict) -> str:
     """Why FPFH went first (the report's ``features_choice``), for :func:`summary_line`:
-    smooth surfaces, or an object below the trained size, with the clouds' rough shares."""
-    rough = " and ".join(f"{100 * r:.0f} %" for r in choice["rough_share"])
-    if choice.get("small_object") and max(choice["rough_share"]) > choice["smooth_share"]:
+    smooth surfaces, with the clouds' rough shares, or an object below the trained size
+    (whose shares are not measured)."""
+    shares = choice["rough_share"]
+    if choice.get("small_object") and not shares:
+        return "an object below the trained size"
+    rough = " and ".join(f"{100 * r:.0f} %" for r in shares)
+    if choice.get("small_object") and max(shares) > choice["smooth_share"]:
         return f"an object below the trained size, {rough} rough"
     return f"smooth surfaces, {rough} rough"
 
