@@ -12,6 +12,9 @@ Three steps:
 * ``make-tabletop --out DIR``: the same layout of the fused tabletop box of
   benchmarks/scan_sim.py (``object_pair``, its table cut off) at ``--sizes`` x ``--angles``
   (20 to 80 deg): a scanned object with edges, where the learned features go first.
+* ``scale SRC --out DIR --factor 1000``: the pair folders of ``SRC`` in other units (the
+  points, the truth's translation, ``info.json``'s size and voxel times the factor; float32
+  PLY): objects in millimetres, which by size alone look like scenes 100 m across.
 * ``run DIR``: ``--repeats`` times, interleaved: ``byoc register-batch DIR/pairs.txt
   --overwrite`` (plus ``--byoc-args``) and the Open3D loop (``o3d-loop``: every pair of the list
   through benchmarks/o3d_fpfh_ransac.py's pipeline at ``info.json``'s voxel, in one
@@ -34,6 +37,7 @@ are judged alike, their size the room's longest side).
 Usage: python benchmarks/objects.py make --out DIR [--shapes blob torus ...] [--views ...]
            [--angles 30 60] [--seeds 0 1] [--sizes 0.1 0.2 0.3] [--noise 1e-4] [--outliers 0.02]
        python benchmarks/objects.py make-tabletop --out DIR [--cache C]
+       python benchmarks/objects.py scale SRC --out DIR [--factor 1000]
        python benchmarks/objects.py run DIR [--repeats 3] [--baseline ../main/src]
            [--byoc-args "--fallback none"]
        python benchmarks/objects.py cues [objects=DIR street=DIR2 ...] [--no-reference]
@@ -148,6 +152,32 @@ def make_tabletop(args: argparse.Namespace) -> None:
             print(f"{name}: {len(pair[0])} + {len(pair[1])} points", file=sys.stderr)
     (args.out / "pairs.txt").write_text("\n".join(lines) + "\n")
     (args.out / "out").mkdir(exist_ok=True)
+
+
+def scale(args: argparse.Namespace) -> None:
+    """The pair folders of ``args.src`` (and its ``pairs.txt``) times ``args.factor`` in
+    ``args.out``."""
+    from plyfile import PlyData, PlyElement
+
+    folders = sorted(p.parent for p in args.src.glob("*/info.json"))
+    for folder in folders:
+        out = args.out / folder.name
+        out.mkdir(parents=True, exist_ok=True)
+        for name in ("source.ply", "target.ply"):
+            v = PlyData.read(str(folder / name))["vertex"]
+            points = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
+            rows = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+            rows["x"], rows["y"], rows["z"] = (points * args.factor).T
+            PlyData([PlyElement.describe(rows, "vertex")]).write(str(out / name))
+        T = np.loadtxt(folder / "T_gt.txt")
+        T[:3, 3] *= args.factor
+        np.savetxt(out / "T_gt.txt", T, fmt="%.17g")
+        info = json.loads((folder / "info.json").read_text())
+        info.update(size=info["size"] * args.factor, voxel=info["voxel"] * args.factor)
+        (out / "info.json").write_text(json.dumps(info, indent=1))
+    (args.out / "out").mkdir(exist_ok=True)
+    (args.out / "pairs.txt").write_text((args.src / "pairs.txt").read_text())
+    print(f"{len(folders)} pairs times {args.factor:g} in {args.out}")
 
 
 def o3d_loop(args: argparse.Namespace) -> None:
@@ -346,6 +376,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--sizes", nargs="+", type=float, default=list(SIZES), help="m")
     p.add_argument("--angles", nargs="+", type=float, default=[20.0, 40.0, 60.0, 80.0])
     p.add_argument("--cache", type=Path, help="folder for the fused mesh (outside the repo)")
+    p = sub.add_parser("scale")
+    p.add_argument("src", type=Path)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--factor", type=float, default=1000.0)
     p = sub.add_parser("o3d-loop")
     p.add_argument("pairs", type=Path)
     p.add_argument("--out-dir", type=Path, required=True)
@@ -363,7 +397,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.step == "run" and not (args.dir / "pairs.txt").is_file():
         parser.error(f"{args.dir}: no pairs.txt (make it with 'make --out {args.dir}')")
     steps = {"make": make, "make-tabletop": make_tabletop, "o3d-loop": o3d_loop, "run": run}
-    steps.update(cues=cues, judge=judge)
+    steps.update(cues=cues, judge=judge, scale=scale)
     steps[args.step](args)
 
 

@@ -487,6 +487,44 @@ def test_objects_refuses_a_folder_without_a_pair_list(tmp_path):
     assert result.returncode == 2 and "no pairs.txt" in result.stderr
 
 
+def test_objects_scale_writes_the_pairs_in_other_units_and_the_truth_still_holds(tmp_path):
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from byoc_cli.io.ply import write_ply
+    from objects import right
+
+    pair = tmp_path / "src" / "blob"
+    pair.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    src = rng.uniform(-0.05, 0.05, (200, 3)) + np.array([0.0, 0.0, 0.4])
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = [0.01, 0.02, -0.03]
+    write_ply(pair / "source.ply", src)
+    write_ply(pair / "target.ply", src @ T[:3, :3].T + T[:3, 3])
+    np.savetxt(pair / "T_gt.txt", T)
+    (pair / "info.json").write_text(json.dumps({"size": 0.1, "voxel": 0.002}))
+    (tmp_path / "src" / "pairs.txt").write_text("blob/source.ply blob/target.ply out/blob.txt\n")
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "objects.py"), "scale", str(tmp_path / "src"),
+         "--out", str(tmp_path / "mm"), "--factor", "1000"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    mm = tmp_path / "mm" / "blob"
+    info = json.loads((mm / "info.json").read_text())
+    assert info["size"] == pytest.approx(100.0) and info["voxel"] == pytest.approx(2.0)
+    assert (tmp_path / "mm" / "pairs.txt").read_text().startswith("blob/source.ply")
+    assert (tmp_path / "mm" / "out").is_dir()
+    T_mm = np.loadtxt(mm / "T_gt.txt")
+    assert np.allclose(T_mm[:3, 3], 1000 * T[:3, 3])
+    assert right(T_mm, mm)[0]  # the truth, in millimetres
+    moved = T_mm.copy()
+    moved[0, 3] += 20.0  # 2 cm: 20 % of the 10 cm object
+    assert not right(moved, mm)[0]
+
+
 def _scaling(*args: str, timeout: float = 120, cwd: Path | None = None):
     return subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "scaling.py"), *args],
