@@ -23,8 +23,10 @@ without one (adjacent fragments, Kinect frames, synthetic), within 5 deg and 10 
 per band the results that pass the gate (confidence >= 0.45), right and wrong; for each cue and
 threshold the wrong results it catches and the right ones it loses; the passing wrong results
 one by one (with ``truth_inliers``: the correspondences within the inlier threshold under the
-ground truth); the seconds of the cues. Records go to ``--out/ambiguity-<set>.json`` and are
-reused (delete one to run its set again).
+ground truth, and ``result_inliers``: under the result); per band, of the wrong results, how
+many the result explains more correspondences of than the truth (then no estimator that
+maximises the consensus finds the truth); the seconds of the cues. Records go to
+``--out/ambiguity-<set>.json`` and are reused (delete one to run its set again).
 """
 
 from __future__ import annotations
@@ -123,6 +125,8 @@ def _judged(correspondences, kept, clouds, config, voxel, refine_voxel, T_gt=Non
         p, q, _ = correspondences
         gap = cues_mod._residual(torch.as_tensor(T_gt, dtype=torch.float64), p, q)
         found["truth_inliers"] = int((gap < solver.threshold).sum())
+        mine = cues_mod._residual(refinement.T_tgt_src.to(torch.float64), p, q)
+        found["result_inliers"] = int((mine < solver.threshold).sum())
     return refinement.T_tgt_src, verdict, found, seconds
 
 
@@ -358,7 +362,7 @@ def table(by_set: dict[str, list[dict]]) -> None:
     print("\nPassing results (wrong first), cues:")
     shown = ("seq_ratio", "seq_voxels", "seq_far_ratio", "seq_far_voxels", "ref_ratio",
              "ref_overlap_ratio", "ref_voxels", "slide_voxels", "restart_gain",
-             "truth_inliers")  # fmt: skip
+             "truth_inliers", "result_inliers")  # fmt: skip
     for band, records in bands:
         passed = sorted((r for r in records if r["passed"]), key=lambda r: (r["right"], r["name"]))
         for r in passed:
@@ -368,6 +372,12 @@ def table(by_set: dict[str, list[dict]]) -> None:
                 f"{r['features']:5s} conf {r['confidence']:.2f} "
                 f"{r['rotation_error_deg']:6.1f} deg {r['translation_error_m']:5.2f} m  {values}"
             )
+    print("\n| band | wrong results | the result explains more correspondences than the truth |")
+    print("|---|---|---|")
+    for band, records in bands:
+        wrong = [r for r in records if not r["right"] and "result_inliers" in r]
+        more = sum(r["result_inliers"] > r["truth_inliers"] for r in wrong)
+        print(f"| {band} | {len(wrong)} | {more} |")
     print("\n| band | cue s / pair (median, max) | registration s / pair (median) |")
     print("|---|---|---|")
     for band, records in bands:

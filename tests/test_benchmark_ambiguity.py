@@ -42,6 +42,8 @@ def test_ambiguity_cues_tell_the_slid_synthetic_pair_from_the_clean_one(tmp_path
     assert slid["ref_ratio"] > 0.5 and slid["slide_voxels"] > 50
     # the ground truth explains the 150 true correspondences of each (and few of the others)
     assert all(150 <= r["truth_inliers"] < 170 for r in (clean, slid))
+    assert all(r["result_inliers"] == r["truth_inliers"] for r in (clean, slid))  # both right
+    assert "| synthetic | 0 | 0 |" in result.stdout  # no wrong result to count
     assert clean["seq_far_ratio"] < 0.1 and clean["ref_ratio"] < 0.1
     assert clean["slide_voxels"] < 3
     assert all(r["cue_seconds"] > 0 for r in records.values())
@@ -93,4 +95,5 @@ def test_ambiguity_scores_cut_pairs_by_their_source_points(tmp_path, shared_data
     assert record["name"].startswith("cut:7-scenes-redkitchen-4-0-")
     assert isinstance(record["right"], bool) and record["seq_far_ratio"] >= 0.0
     assert 0 <= record["truth_inliers"] <= 5000  # correspondences the ground truth explains
+    assert 0 <= record["result_inliers"] <= 5000  # and the result
     assert "| cut (12-32 %) | 1 |" in result.stdout

@@ -713,6 +713,9 @@ def test_the_summary_line_says_when_fpfh_went_first_for_a_small_object():
     result.features_choice = {**choice, "rough_share": [], "small_object": True}
     line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")  # shares not measured
     assert line.endswith("(FPFH features: an object below the trained size)")
+    result.features_choice = {**result.features_choice, "in_millimetres": True}
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, None)
+    assert line.endswith("(FPFH features: an object below the trained size, read as millimetres)")
 
 
 @pytest.mark.parametrize("agree", [True, False])

@@ -18,8 +18,10 @@ from byoc_cli.geometry.sampling import (
     even_radius,
     linear_share,
     local_frame,
+    nearest_distances,
     nearest_spacing,
     rough_share,
+    spacing_spread,
     spread,
     surround_share,
 )
@@ -113,6 +115,19 @@ def test_the_even_radius_does_not_depend_on_the_unit_or_on_strays_far_away(facto
     assert even_radius(room * factor) == pytest.approx(even_radius(room) * factor, rel=1e-9)
     assert even_radius(strays) == pytest.approx(even_radius(room), rel=0.02)
     assert even_radius(torch.from_numpy(room)) == even_radius(room)
+
+
+def test_the_spacing_spread_tells_an_even_scan_from_one_whose_step_grows_with_range():
+    rng = np.random.default_rng(0)
+    grid = np.stack(np.meshgrid(np.arange(60.0), np.arange(60.0), [0.0]), -1).reshape(-1, 3)
+    even = grid * 0.5 + rng.normal(0.0, 0.02, grid.shape)  # a surface sampled evenly
+    assert spacing_spread(nearest_distances(torch.from_numpy(even))) < 2.0
+    rings = ring_scan()  # a spinning LiDAR: the step grows with the range
+    assert spacing_spread(nearest_distances(torch.from_numpy(rings))) > 3.0
+    found = nearest_distances(torch.from_numpy(even))
+    assert np.median(found) == nearest_spacing(torch.from_numpy(even))
+    assert len(nearest_distances(torch.zeros(5, 3))) == 0  # one distinct point
+    assert np.isnan(spacing_spread(np.zeros(0)))
 
 
 def test_a_panorama_surrounds_its_origin_and_a_camera_frame_does_not():

@@ -145,6 +145,17 @@ def test_small_objects_are_clouds_below_the_trained_size(radii, objects):
     assert small_objects([_scale(r, r * 1.3) for r in radii]) == objects  # panoramas alike
 
 
+@pytest.mark.parametrize(("origin", "objects"), [(9.0, True), (2.5, False), (0.1, False)])
+def test_an_object_in_millimetres_seen_from_outside_is_small_too(origin, objects):
+    """Radii of 55 and 60 units: a 10 cm object in millimetres, or a 110 m scene. Seen from 9
+    radii away (a scanner looking at an object) it is an object; from 2.5 (a depth frame, a
+    fragment) or 0.1 (a LiDAR scan, a terrestrial scan around its scanner) it is not."""
+    from byoc_cli.pipeline.fallback import small_objects
+
+    scales = [_scale(r)._replace(origin_radii=origin, spacing_spread=1.6) for r in (60.0, 55.0)]
+    assert small_objects(scales) == objects
+
+
 class _Fpfh:
     """The FPFH registrations a :class:`Fallback` stand-in gives its repeats: ``T`` in turn."""
 

@@ -266,20 +266,28 @@ def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
 
 
 @pytest.mark.slow
-def test_a_noisy_small_object_starts_with_fpfh_and_is_registered():
+@pytest.mark.parametrize("unit", [1.0, 1000.0])
+def test_a_noisy_small_object_starts_with_fpfh_and_is_registered(unit):
+    """The same object scan in metres (below the trained size) and in millimetres (read as
+    an object: seen from its scanner 7 radii away) takes the same path."""
     import byoc_cli
 
     rng = np.random.default_rng(0)
-    noisy = [smooth_scan(k) + rng.normal(0.0, 5e-4, (40000, 3)) for k in (0, 1)]
+    seen = np.array([0.0, 0.0, 0.5])  # the scanner at the origin, 50 cm away
+    noise = (0.0, 2e-4, (40000, 3))  # range noise about half the scanner's step
+    noisy = [smooth_scan(k, even=True) + seen + rng.normal(*noise) for k in (0, 1)]
     T = np.eye(4)
     T[:3, :3] = axis_angle_matrix(np.array([0.0, 0.0, np.radians(25.0)]))
     T[:3, 3] = [0.02, -0.01, 0.03]
     target = noisy[1] @ T[:3, :3].T + T[:3, 3]
-    got = byoc_cli.Registrar(device="cpu").register(noisy[0], target)
+    got = byoc_cli.Registrar(device="cpu").register(noisy[0] * unit, target * unit)
     assert got.features_choice["first"] == "fpfh" and got.features_choice["small_object"]
+    assert got.features_choice["in_millimetres"] == (unit > 1)
     assert got.features_choice["rough_share"] == []  # small: FPFH whatever the noise reads
     assert got.features == "fpfh" and got.fallback is None and got.passed
-    degrees, shift = correction(got.T_tgt_src, T, noisy[0].mean(axis=0))
+    found = got.T_tgt_src.copy()
+    found[:3, 3] /= unit
+    degrees, shift = correction(found, T, noisy[0].mean(axis=0))
     assert degrees < 2.0 and shift < 0.005
 
 

@@ -3,6 +3,8 @@ out, refusals."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -201,6 +203,45 @@ def test_only_an_even_radius_above_the_trained_range_and_the_raw_one_sizes_fpfh(
         choose_voxel(scales, REF, even=True).voxel_size
         == choose_voxel((scales[0]._replace(radius=size),), REF).voxel_size
     )
+
+
+def _mm_object(**changes):
+    scale = CloudScale(80_000, 0.4, 50.0, origin_radii=9.0, spacing_spread=1.6)
+    return scale._replace(**changes)
+
+
+@pytest.mark.parametrize(
+    ("changes", "expected"),
+    [
+        ({}, True),  # a 10 cm object in millimetres, its scanner 45 cm away
+        ({"radius": 9.0}, False),  # below 1 cm in millimetres: a 9 m room in metres
+        ({"radius": 150.0}, False),  # 15 cm in millimetres: the trained range
+        ({"origin_radii": 2.5}, False),  # a depth frame or fragment (in centimetres)
+        ({"origin_radii": 0.2}, False),  # a LiDAR scan about its sensor
+        ({"origin_radii": 1e4}, False),  # georeferenced: no sensor at the origin
+        ({"origin_radii": None}, False),  # not measured
+        ({"even_radius": 60.0}, False),  # a panorama: a terrestrial laser scan
+        ({"spacing_spread": 5.2}, False),  # the step grows with the range: a LiDAR street
+        ({"spacing_spread": None}, False),  # not measured
+        ({"line_voxel": 1.2}, False),  # sampled along lines: a spinning LiDAR's rings
+    ],
+)
+def test_an_object_in_millimetres_is_sized_as_one_and_seen_from_outside(changes, expected):
+    from byoc_cli.pipeline.scale import object_in_millimetres
+
+    assert object_in_millimetres((_mm_object(), _mm_object(**changes))) == expected
+    assert not object_in_millimetres(())
+
+
+def test_measure_reads_how_far_the_sensor_stood_in_radii():
+    points = camera_scan()
+    got = measure(torch.from_numpy(points), lines=False)
+    centre = np.median(points, axis=0)
+    assert got.origin_radii == pytest.approx(np.linalg.norm(centre) / got.radius)
+    moved = measure(torch.from_numpy(points - centre), lines=False)  # about its median
+    assert moved.origin_radii == pytest.approx(0.0, abs=1e-9)
+    assert json.loads(json.dumps(got._asdict()))["origin_radii"] == got.origin_radii
+    assert got.spacing_spread >= 1.0
 
 
 def test_measure_reads_the_even_radius_of_a_panorama_only():

@@ -235,7 +235,8 @@ def _why_fpfh(choice: dict) -> str:
     (whose shares are not measured)."""
     shares = choice["rough_share"]
     if choice.get("small_object") and not shares:
-        return "an object below the trained size"
+        unit = ", read as millimetres" if choice.get("in_millimetres") else ""
+        return f"an object below the trained size{unit}"
     rough = " and ".join(f"{100 * r:.0f} %" for r in shares)
     if choice.get("small_object") and max(shares) > choice["smooth_share"]:
         return f"an object below the trained size, {rough} rough"

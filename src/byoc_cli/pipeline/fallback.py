@@ -182,10 +182,18 @@ def small_objects(scales: Sequence) -> bool:
     """Whether clouds of the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` are
     smaller than the trained size: their size (:func:`~byoc_cli.pipeline.scale.size_radius`)
     lies below :data:`~byoc_cli.pipeline.scale.TRAINED_RADIUS` (objects of 10 to 30 cm in
-    metres; depth frames and fragments lie within it, rooms and LiDAR above it)."""
-    from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius  # torch: not on import
+    metres; depth frames and fragments lie within it, rooms and LiDAR above it), or they read
+    as such an object in millimetres
+    (:func:`~byoc_cli.pipeline.scale.object_in_millimetres`), so that the same scan takes
+    the same path in either unit."""
+    from byoc_cli.pipeline.scale import (  # torch: not on import
+        TRAINED_RADIUS,
+        object_in_millimetres,
+        size_radius,
+    )
 
-    return size_radius(tuple(scales)) < TRAINED_RADIUS[0]
+    scales = tuple(scales)
+    return size_radius(scales) < TRAINED_RADIUS[0] or object_in_millimetres(scales)
 
 
 def large_panoramas(made: Any, src: Features, tgt: Features) -> bool:

@@ -13,7 +13,8 @@ the learned features below the gate.
 
 When both clouds of a pair are smooth (at most :data:`SMOOTH_SHARE` rough), or the pair is an
 object smaller than the trained size (:func:`~byoc_cli.pipeline.fallback.small_objects`: a
-radius below 0.15 m, where range noise reads rough), FPFH registers it (the fallback's preset
+radius below 0.15 m, where range noise reads rough, or such an object in millimetres:
+:func:`~byoc_cli.pipeline.scale.object_in_millimetres`), FPFH registers it (the fallback's preset
 with the changes of :data:`SMOOTH_FPFH`) and the learned features are skipped
 (:func:`smooth_first`). On the rough small objects of ``docs/objects.md`` (the tabletop box,
 noisy laser scans) the learned features first registered 114 pairs right and passed 8 wrong,
@@ -84,35 +85,43 @@ class FeaturesChoice(NamedTuple):
             at the pair's voxel (:func:`~byoc_cli.geometry.sampling.rough_share`).
         reason: one sentence for reports and logs.
         small_object: the pair is smaller than the trained size (FPFH first, rough or not).
+        in_millimetres: it is so read as an object in millimetres
+            (:func:`~byoc_cli.pipeline.scale.object_in_millimetres`).
     """
 
     first: str
     rough_share: tuple[float, ...]
     reason: str
     small_object: bool = False
+    in_millimetres: bool = False
 
     def as_dict(self) -> dict:
         """JSON-ready: ``first``, ``rough_share``, ``smooth_share`` (the threshold),
-        ``small_object``, ``reason``."""
+        ``small_object``, ``in_millimetres``, ``reason``."""
         return {
             "first": self.first,
             "rough_share": list(self.rough_share),
             "smooth_share": SMOOTH_SHARE,
             "small_object": self.small_object,
+            "in_millimetres": self.in_millimetres,
             "reason": self.reason,
         }
 
 
-def choose_features(rough: Sequence[float], small: bool = False) -> FeaturesChoice:
+def choose_features(
+    rough: Sequence[float], small: bool = False, millimetres: bool = False
+) -> FeaturesChoice:
     """The features a pair whose clouds have ``rough`` shares of rough neighbourhoods starts
     with: ``"fpfh"`` when every one is at most :data:`SMOOTH_SHARE` or the pair is ``small``
-    (smaller than the trained size), else ``"byoc"``. A ``small`` pair needs no shares
-    (``rough`` empty: not measured)."""
+    (smaller than the trained size; ``millimetres``: read so as an object in millimetres),
+    else ``"byoc"``. A ``small`` pair needs no shares (``rough`` empty: not measured)."""
     rough = tuple(float(r) for r in rough)
     shares = ", ".join(f"{100 * r:.0f} %" for r in rough)
     recipe = "FPFH features (3000 points, no restarts)"
     if small and not rough:
-        return FeaturesChoice("fpfh", rough, f"an object below the trained size: {recipe}", True)
+        unit = ", read as millimetres (seen from outside, not a panorama)" if millimetres else ""
+        why = f"an object below the trained size{unit}: {recipe}"
+        return FeaturesChoice("fpfh", rough, why, True, millimetres)
     if max(rough) <= SMOOTH_SHARE:
         why = (
             f"smooth surfaces ({shares} of the neighbourhoods rough, at most "
@@ -142,9 +151,11 @@ def features_for(
     (:func:`~byoc_cli.pipeline.fallback.small_objects`). A small pair starts with FPFH
     whatever its shares, so they are not measured (about a tenth of such a pair's time)."""
     from byoc_cli.pipeline.fallback import small_objects
+    from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius
 
     if small_objects(scales):
-        return choose_features((), small=True)
+        millimetres = size_radius(tuple(scales)) >= TRAINED_RADIUS[0]
+        return choose_features((), small=True, millimetres=millimetres)
     rough = [made.rough_share(points, voxel_size) for points in clouds]
     return choose_features(rough)
 

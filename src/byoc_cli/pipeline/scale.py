@@ -51,7 +51,8 @@ from byoc_cli.geometry.sampling import (
     even_radius,
     far_from_origin,
     linear_share,
-    nearest_spacing,
+    nearest_distances,
+    spacing_spread,
     spread,
     surround_share,
 )
@@ -106,6 +107,13 @@ class CloudScale(NamedTuple):
             evenly (:func:`~byoc_cli.geometry.sampling.even_radius`): larger than ``radius``
             where the points crowd around the scanner; FPFH's size (:func:`size_radius`).
             None: not a panorama, or not measured.
+        origin_radii: how far the median point lies from the origin, in radii: where the
+            sensor that saw the cloud stood, when the cloud is in its frame (None: not
+            measured). Depth frames and 3DMatch fragments 1.7 to 2.8, scans of a panorama
+            or a street below 1, laser scans of an object from outside it 3 to 11.
+        spacing_spread: how unevenly the cloud is sampled
+            (:func:`~byoc_cli.geometry.sampling.spacing_spread`: the 90th percentile of the
+            nearest-neighbour distances over the 10th; None: not measured).
     """
 
     num_points: int
@@ -114,6 +122,8 @@ class CloudScale(NamedTuple):
     label: str = "cloud"
     line_voxel: float | None = 0.0
     even_radius: float | None = None
+    origin_radii: float | None = None
+    spacing_spread: float | None = None
 
     @property
     def dimension(self) -> float:
@@ -186,7 +196,8 @@ def measure(
         raise RegistrationError(_too_few(points, distinct, label))
     centre, radius = spread(points) if measured is None else measured
     check_radius(radius, label)
-    spacing = nearest_spacing(points)
+    distances = nearest_distances(points)
+    spacing = float(np.median(distances)) if len(distances) else 0.0
     if radius <= 0 or spacing <= 0 or radius < 2 * spacing:  # no extent: a few points repeated?
         distinct = len(np.unique(points.numpy(), axis=0))
         if distinct < MIN_POINTS:
@@ -194,7 +205,9 @@ def measure(
     line_voxel = scan_line_voxel(points, spacing, radius) if lines else None
     around = points - torch.from_numpy(centre) if far_from_origin(centre, radius) else points
     even = even_radius(points) if surround_share(around) >= PANORAMA else None
-    return CloudScale(len(points), spacing, radius, label, line_voxel, even)
+    origin = float(np.linalg.norm(centre)) / radius if radius > 0 else None
+    uneven = spacing_spread(distances) if len(distances) else None
+    return CloudScale(len(points), spacing, radius, label, line_voxel, even, origin, uneven)
 
 
 #: float32 coordinates this far from the origin lie 1 cm or more apart
@@ -335,6 +348,45 @@ def choose_voxel(
     if not alike:
         why += "; the denser cloud's features from a share of its points, as sparse as the other"
     return VoxelChoice(voxel, refine_voxel, reference, voxel / reference, why, tuple(scales), keep)
+
+
+#: radii, in the clouds' units, of an object 1 to 15 cm in radius measured in millimetres (the
+#: trained range starts at 0.15 m): by size alone a scene 10 to 150 m in radius in metres
+MILLIMETRE_OBJECT = (10.0, 1000.0 * TRAINED_RADIUS[0])
+#: a cloud whose median point lies at least this many radii from its origin was seen from
+#: outside it (:attr:`CloudScale.origin_radii`: simulated laser scans of objects 8.6 to 10.5,
+#: a fused tabletop object 3.1 to 3.3; depth frames and 3DMatch fragments at most 2.8, cut
+#: pieces of fragments 3.9); FAR_RADII and beyond: georeferenced, no sensor at the origin
+SEEN_FROM_OUTSIDE = 4.0
+#: a scan of an object, taken from outside it at a near constant range, is sampled evenly:
+#: its :attr:`CloudScale.spacing_spread` is at most this (simulated laser scans of objects
+#: 1.3 to 2.1, a fused tabletop box 1.6 to 1.8); a LiDAR street or a terrestrial laser scan,
+#: whose step grows with the range from a sensor within it, is not (5.2 to 7.0)
+EVEN_SAMPLING = 3.0
+
+
+def object_in_millimetres(scales: tuple[CloudScale, ...]) -> bool:
+    """Whether clouds of ``scales`` read as a laser scan of an object in millimetres: each one
+    sized as a 1 to 15 cm object in millimetres (:data:`MILLIMETRE_OBJECT`), seen from outside
+    it by a sensor at its origin (:data:`SEEN_FROM_OUTSIDE` up to FAR_RADII radii away),
+    sampled evenly (:data:`EVEN_SAMPLING`), not along lines, and not a panorama. A LiDAR scan
+    of a street of that size (rings, a step that grows with the range, its sensor within it
+    unless moved into a map's frame), a terrestrial laser scan (a panorama) and a
+    georeferenced cloud are not; a depth frame or a 3DMatch fragment is smaller in any unit
+    but centimetres, and seen from within 2.8 radii."""
+    from byoc_cli.geometry.sampling import FAR_RADII
+
+    low, high = MILLIMETRE_OBJECT
+    return bool(scales) and all(
+        low <= s.radius < high
+        and s.even_radius is None
+        and not s.line_voxel
+        and s.origin_radii is not None
+        and SEEN_FROM_OUTSIDE <= s.origin_radii < FAR_RADII
+        and s.spacing_spread is not None
+        and s.spacing_spread <= EVEN_SAMPLING
+        for s in scales
+    )
 
 
 def size_radius(scales: tuple[CloudScale, ...]) -> float:
