@@ -7,6 +7,10 @@ code never prints or exits.
 
 from __future__ import annotations
 
+import sys
+import threading
+import types
+
 
 class ByocError(Exception):
     """Base class of every error raised on purpose by byoc-cli."""
@@ -50,8 +54,20 @@ class TrainingError(ByocError):
     """Training cannot go on: the loss or the weights became NaN or Inf (diverged)."""
 
 
+#: the first import of open3d, one thread at a time (:func:`require_open3d`)
+_OPEN3D_IMPORT = threading.Lock()
+#: the subpackage open3d imports on import and byoc never uses: its plotting helpers import
+#: dash, plotly and IPython, about 0.6 CPU-seconds of open3d's 0.9 (``python -X importtime``)
+_OPEN3D_VISUALIZATION = "open3d.visualization"
+
+
 def require_open3d():
     """Import open3d lazily, with an install hint if that fails.
+
+    The first import skips ``open3d.visualization`` (a placeholder stands in for it while
+    open3d imports, and is taken away after): ``import open3d.visualization`` later imports
+    the real one, as it would have been. Where that fails (another open3d), open3d is
+    imported as it is.
 
     Returns:
         The ``open3d`` module.
@@ -61,7 +77,8 @@ def require_open3d():
             instance when the system library libusb-1.0 is missing).
     """
     try:
-        import open3d as o3d
+        with _OPEN3D_IMPORT:
+            o3d = sys.modules.get("open3d") or _import_open3d()
     except Exception as exc:  # ImportError, OSError from a missing shared library
         raise DependencyError(
             f"open3d is needed for this feature but could not be imported ({exc}); "
@@ -70,3 +87,23 @@ def require_open3d():
         ) from exc
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     return o3d
+
+
+def _import_open3d():
+    """``import open3d`` without its visualization subpackage (:func:`require_open3d`);
+    as it is where that fails."""
+    placeholder = types.ModuleType(_OPEN3D_VISUALIZATION)
+    sys.modules.setdefault(_OPEN3D_VISUALIZATION, placeholder)
+    try:
+        import open3d
+    except Exception:
+        open3d = None
+    finally:
+        if sys.modules.get(_OPEN3D_VISUALIZATION) is placeholder:
+            del sys.modules[_OPEN3D_VISUALIZATION]
+        package = sys.modules.get("open3d")
+        if getattr(package, "visualization", None) is placeholder:
+            del package.visualization
+    if open3d is None:
+        import open3d
+    return open3d
