@@ -332,14 +332,16 @@ def test_the_two_directions_side_by_side_give_the_same_correspondences():
     k=st.integers(1, 3),
     levels=st.integers(1, 6),  # few distinct values: ties
     nan_row=st.booleans(),
+    mixed=st.booleans(),
     dtype=st.sampled_from([torch.float32, torch.float64]),
     seed=st.integers(0, 2**31 - 1),
 )
-def test_smallest_columns_give_topks_values(rows, cols, k, levels, nan_row, dtype, seed):
+def test_smallest_columns_give_topks_values(rows, cols, k, levels, nan_row, mixed, dtype, seed):
     g = torch.Generator().manual_seed(seed)
     score = torch.rand(rows, cols, generator=g, dtype=dtype)
-    if levels < 6:  # few distinct values: ties, which go to topk
-        score = torch.randint(0, levels, (rows, cols), generator=g).to(dtype)
+    if levels < 6:  # few distinct values: ties, which go to topk (mixed: every other row)
+        tied = torch.randint(0, levels, (rows, cols), generator=g).to(dtype)
+        score[:: 2 if mixed else 1] = tied[:: 2 if mixed else 1]
     k = min(k, cols)  # feature_knn's clip
     if nan_row:
         score[0, cols // 2] = float("nan")
