@@ -24,7 +24,7 @@ def test_open3d_is_imported_without_its_plotting_helpers_and_they_still_import_l
         from byoc_cli.errors import require_open3d
         o3d = require_open3d()
         print("dash" in sys.modules, "open3d.visualization" in sys.modules,
-              hasattr(o3d, "visualization"))
+              "visualization" in vars(o3d))
         assert callable(o3d.pipelines.registration.compute_fpfh_feature)
         import open3d.visualization as vis  # what a user of the API may do next
         print(callable(vis.draw_geometries), o3d.visualization is vis)
@@ -32,6 +32,25 @@ def test_open3d_is_imported_without_its_plotting_helpers_and_they_still_import_l
     )
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["False", "False", "False", "True", "True"]
+
+
+def test_the_package_gives_its_visualization_when_a_user_asks_for_it_after_byoc():
+    run = _fresh(
+        """
+        import sys
+        from byoc_cli.errors import require_open3d
+        require_open3d()  # as byoc does in a registration of the Python API
+        import open3d as o3d  # then the user's own code
+        print("dash" in sys.modules, callable(o3d.visualization.draw_geometries))
+        print("dash" in sys.modules, o3d.visualization is sys.modules["open3d.visualization"])
+        try:
+            o3d.no_such_thing
+        except AttributeError as exc:
+            print("AttributeError", "no_such_thing" in str(exc))
+        """
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "True", "True", "True", "AttributeError", "True"]
 
 
 def test_open3d_imported_from_two_threads_at_once_is_one_module():

@@ -65,9 +65,10 @@ def require_open3d():
     """Import open3d lazily, with an install hint if that fails.
 
     The first import skips ``open3d.visualization`` (a placeholder stands in for it while
-    open3d imports, and is taken away after): ``import open3d.visualization`` later imports
-    the real one, as it would have been. Where that fails (another open3d), open3d is
-    imported as it is.
+    open3d imports, and is taken away after): ``open3d.visualization`` is imported when it is
+    first asked for (``import open3d.visualization``, or the attribute of the package, as
+    the Python API's users may do after a registration). Where that fails (another open3d),
+    open3d is imported as it is.
 
     Returns:
         The ``open3d`` module.
@@ -106,4 +107,16 @@ def _import_open3d():
             del package.visualization
     if open3d is None:
         import open3d
+    elif "visualization" not in vars(open3d) and "__getattr__" not in vars(open3d):
+        open3d.__getattr__ = _visualization_on_demand
     return open3d
+
+
+def _visualization_on_demand(name: str):
+    """The open3d package's attribute ``name`` that is not there yet (PEP 562): its
+    ``visualization`` subpackage, imported now (:func:`_import_open3d` left it out)."""
+    if name == "visualization":
+        import importlib
+
+        return importlib.import_module(_OPEN3D_VISUALIZATION)
+    raise AttributeError(f"module 'open3d' has no attribute {name!r}")
