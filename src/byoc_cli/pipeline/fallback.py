@@ -13,17 +13,17 @@ docs/rooms.md this takes FPFH's voxel from 5-13 cm to 11-16 cm and the default f
 and 2 wrong with exit 0 to 10 and 0.
 
 On objects smaller than the trained size (:func:`small_objects`: laser scans of objects of
-10 to 30 cm, in metres) the learned features often match nothing and FPFH
-registers the pair below the gate; a result with a small residual is then fitted twice more,
-as a smooth pair's (:func:`~byoc_cli.pipeline.feature_choice.reproduce`), and passes when both
-repeats land on it. ``register`` and ``register-batch`` start such pairs with FPFH
-(:mod:`~byoc_cli.pipeline.feature_choice`); this serves where the learned features went
+10 to 30 cm, in metres, or in millimetres seen from outside) the learned features often
+match nothing and FPFH registers the pair below the gate; a result with a small residual is
+then fitted twice more, as a smooth pair's (:func:`~byoc_cli.pipeline.feature_choice.reproduce`),
+and passes when both repeats land on it. ``register`` and ``register-batch`` start such pairs
+with FPFH (:mod:`~byoc_cli.pipeline.feature_choice`); this serves where the learned features went
 first all the same (:meth:`~byoc_cli.pipeline.registrar.Registrar.match` on features
 extracted apart). Depth frames and fragments, which are within the trained size, are not
 repeated: on a camera circling a cabinet the repeats land again on a pose near the identity
-(the frame's own pattern matched to itself) as readily as on the truth; nor are scans larger
-than it, whose size alone does not tell an object in millimetres from a georeferenced LiDAR
-scan (sampled along rings, a pattern of its own).
+(the frame's own pattern matched to itself) as readily as on the truth; nor are other scans
+larger than it (LiDAR sampled along rings, a pattern of its own; panoramas; objects in
+millimetres that :func:`~byoc_cli.pipeline.scale.object_in_millimetres` does not pick).
 """
 
 from __future__ import annotations

@@ -151,11 +151,10 @@ def features_for(
     (:func:`~byoc_cli.pipeline.fallback.small_objects`). A small pair starts with FPFH
     whatever its shares, so they are not measured (about a tenth of such a pair's time)."""
     from byoc_cli.pipeline.fallback import small_objects
-    from byoc_cli.pipeline.scale import TRAINED_RADIUS, size_radius
+    from byoc_cli.pipeline.scale import object_in_millimetres
 
     if small_objects(scales):
-        millimetres = size_radius(tuple(scales)) >= TRAINED_RADIUS[0]
-        return choose_features((), small=True, millimetres=millimetres)
+        return choose_features((), small=True, millimetres=object_in_millimetres(tuple(scales)))
     rough = [made.rough_share(points, voxel_size) for points in clouds]
     return choose_features(rough)
 
