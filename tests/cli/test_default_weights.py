@@ -145,3 +145,16 @@ def test_the_package_data_installs_the_weights_and_their_checksum():
     root = Path(default_weights.__file__).resolve().parents[1]
     for path in (default_weights.DEFAULT_WEIGHTS, default_weights.DEFAULT_CHECKSUM):
         assert str(path.relative_to(root)) in data
+
+
+def test_a_damaged_install_is_refused_before_any_pair(tmp_path, monkeypatch):
+    """The shipped tensors are read on first use, but the file's checksum is checked when the
+    registrar is made."""
+    from byoc_cli.errors import WeightsError
+    from byoc_cli.pipeline.registrar import Registrar
+
+    bad = tmp_path / "default.sha256"
+    bad.write_text("0" * 64 + "\n")
+    monkeypatch.setattr(default_weights, "DEFAULT_CHECKSUM", bad)
+    with pytest.raises(WeightsError, match="checksum"):
+        Registrar()

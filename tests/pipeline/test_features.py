@@ -32,3 +32,25 @@ def test_voxel_larger_than_the_cloud_is_refused():
 def test_a_thick_line_is_not_collinear():
     # a 'line' 40 cm thick at a 5 cm voxel has structure across it
     assert FpfhExtractor(0.05)(_line(2000, noise=0.2)).points.shape[0] > 10
+
+
+def test_an_encoder_given_as_a_function_is_built_once_on_first_use():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from byoc_cli.models.encoder import build_encoder
+    from byoc_cli.pipeline.features import ByocExtractor
+
+    calls = []
+
+    def build():
+        calls.append(1)
+        return build_encoder("compact")
+
+    extractor = ByocExtractor(build, 0.05)
+    assert not extractor.loaded and calls == []
+    points = torch.rand(400, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda _: extractor(points).feats, range(4)))
+    assert calls == [1] and extractor.loaded and not extractor.encoder.training
+    for features in got[1:]:
+        torch.testing.assert_close(features, got[0])

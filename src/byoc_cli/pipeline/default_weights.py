@@ -69,3 +69,21 @@ def load_default_weights():
     loaded = load_weights(DEFAULT_WEIGHTS)  # one read: it hashes the whole file too
     _check_digest(DEFAULT_WEIGHTS, loaded.file_sha256, DEFAULT_CHECKSUM)
     return loaded
+
+
+def default_weights_metadata() -> tuple[dict, str]:
+    """The metadata of the shipped weights and the file's SHA-256, the file checked against
+    its recorded checksum, its tensors not read (:func:`load_default_weights` reads them).
+
+    Raises:
+        WeightsError: nothing ships, the checksum disagrees, or the metadata is invalid.
+    """
+    from byoc_cli.pipeline.weights import read_metadata
+
+    if not DEFAULT_WEIGHTS.is_file():
+        raise WeightsError(
+            DEFAULT_WEIGHTS, "no weights ship with this install (pass --weights FILE)"
+        )
+    meta, digest = read_metadata(DEFAULT_WEIGHTS)
+    _check_digest(DEFAULT_WEIGHTS, digest, DEFAULT_CHECKSUM)
+    return meta, digest

@@ -7,6 +7,8 @@ metrics see exactly the same points whichever features are used.
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -99,18 +101,41 @@ class ByocExtractor:
     """The frozen geometric encoder on a voxelised cloud.
 
     Args:
-        encoder: a :class:`byoc_cli.models.encoder.GeometricEncoder`; moved to ``device``
-            and put in eval mode.
+        encoder: a :class:`byoc_cli.models.encoder.GeometricEncoder`, or a function of no
+            arguments that returns one, called when the first cloud is encoded (a pair that
+            FPFH registers alone never pays for building it); moved to ``device`` and put in
+            eval mode.
         voxel_size: in the units of the points (metres).
         device: where the encoder runs.
     """
 
     name = "byoc"
 
-    def __init__(self, encoder: torch.nn.Module, voxel_size: float, device: str = "cpu") -> None:
-        self.encoder = encoder.to(device).eval()
+    def __init__(
+        self,
+        encoder: torch.nn.Module | Callable[[], torch.nn.Module],
+        voxel_size: float,
+        device: str = "cpu",
+    ) -> None:
         self.voxel_size = float(voxel_size)
         self.device = torch.device(device)
+        self._lock = threading.Lock()
+        self._load = None if isinstance(encoder, torch.nn.Module) else encoder
+        self._encoder = None if self._load is not None else encoder.to(device).eval()
+
+    @property
+    def encoder(self) -> torch.nn.Module:
+        """The encoder, built on first use (once, whichever thread asks first)."""
+        if self._encoder is None:
+            with self._lock:
+                if self._encoder is None:
+                    self._encoder = self._load().to(self.device).eval()
+        return self._encoder
+
+    @property
+    def loaded(self) -> bool:
+        """Whether the encoder is built."""
+        return self._encoder is not None
 
     def __call__(
         self, points: torch.Tensor, label: str = "cloud", voxel_size: float | None = None

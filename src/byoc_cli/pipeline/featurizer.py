@@ -231,18 +231,32 @@ def make_extractor(
         ``(extractor, weights_info | None)``; ``weights_info`` holds ``path``, ``sha256``,
         ``architecture``, ``variant`` and ``code_version``.
 
+    The shipped weights (``weights`` None) are checked against their checksum and their
+    metadata read here; their tensors are read when the first cloud is encoded, so that a
+    process whose pairs FPFH registers alone never builds the encoder.
+
     Raises:
-        WeightsError: the weights cannot be loaded.
+        WeightsError: the weights cannot be loaded (the shipped ones: their file, checksum or
+            metadata).
     """
     from byoc_cli.pipeline.features import ByocExtractor, FpfhExtractor
 
     if recipe.features.kind == "fpfh":
         return FpfhExtractor(voxel_size or recipe.features.reference_voxel), None
-    if weights is None or isinstance(weights, (str, os.PathLike)):
-        loaded = load_weights(weights)
+    if weights is None:  # the shipped file: its tensors are read when first needed
+        from byoc_cli.pipeline.default_weights import DEFAULT_WEIGHTS, default_weights_metadata
+
+        meta, digest = default_weights_metadata()
+        path, encoder = DEFAULT_WEIGHTS, lambda: load_weights(None).encoder
     else:
-        loaded = weights
-    trained_voxel = float(loaded.metadata["voxel_size"])
+        loaded = load_weights(weights) if isinstance(weights, (str, os.PathLike)) else weights
+        meta, digest, path, encoder = (
+            loaded.metadata,
+            loaded.file_sha256,
+            loaded.path,
+            loaded.encoder,
+        )
+    trained_voxel = float(meta["voxel_size"])
     if voxel_size is not None and abs(voxel_size - trained_voxel) > 1e-9:
         warnings.warn(
             f"--voxel-size {voxel_size:g} differs from the {trained_voxel:g} m the weights "
@@ -250,13 +264,13 @@ def make_extractor(
             stacklevel=4,
         )
     info = {
-        "path": str(loaded.path),
-        "sha256": loaded.file_sha256,
-        "architecture": loaded.metadata["architecture"],
-        "variant": loaded.metadata["training"]["variant"],
-        "code_version": loaded.metadata["code_version"],
+        "path": str(path),
+        "sha256": digest,
+        "architecture": meta["architecture"],
+        "variant": meta["training"]["variant"],
+        "code_version": meta["code_version"],
     }
-    return ByocExtractor(loaded.encoder, voxel_size or trained_voxel, device), info
+    return ByocExtractor(encoder, voxel_size or trained_voxel, device), info
 
 
 def keep_subset(n: int, keep: float) -> np.ndarray | None:

@@ -298,6 +298,24 @@ def _named_config(path: str | Path, arch: str, raw: dict[str, Any]) -> EncoderCo
     return ENCODER_CONFIGS[arch]
 
 
+def read_metadata(path: str | Path) -> tuple[dict[str, Any], str]:
+    """The validated metadata of a weights file and the SHA-256 of the whole file (hex),
+    without reading its tensors: what a report says of the weights before the encoder is
+    built (:func:`load_weights` checks the tensors).
+
+    Raises:
+        WeightsError: the file is missing, not a regular file, larger than a weights file may
+            be, not safetensors, or its metadata does not match the spec.
+    """
+    path = Path(path)
+    with open_input(path, "weights", WeightsError) as f:
+        meta = _metadata(path, _read_header(path, f))
+        validate_metadata(path, meta)
+        f.seek(0)
+        blob = f.read(SIZE_CAPS["weights"][0] + 1)
+    return meta, hashlib.sha256(blob).hexdigest()
+
+
 def load_weights(path: str | Path) -> LoadedWeights:
     """Read, validate and build the encoder of a weights file.
 
