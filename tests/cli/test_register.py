@@ -718,6 +718,25 @@ def test_the_summary_line_says_when_fpfh_went_first_for_a_small_object():
     assert line.endswith("(FPFH features: an object below the trained size, read as millimetres)")
 
 
+@pytest.mark.parametrize("used", [True, False])
+def test_the_summary_line_says_when_coarser_features_registered_an_object(used):
+    from types import SimpleNamespace
+
+    from byoc_cli.cli.register import summary_line
+
+    coarser = {"factor": 1.4, "confidence": 0.7, "used": used, "first_confidence": 0.212}
+    choice = {"first": "fpfh", "rough_share": [], "small_object": True, "coarser": coarser}
+    result = SimpleNamespace(
+        path="global", confidence=0.7, num_inliers=45, num_correspondences=2000,
+        inlier_threshold=0.01, voxel_size=0.005, fallback=None, features="fpfh",
+        features_choice=choice, reproduced=None, init=None, retries=None,
+    )  # fmt: skip
+    line = summary_line(Path("a.ply"), Path("b.ply"), result, 1.0, "m")
+    said = "; features at 1.4x the voxel, the first try reached confidence 0.212)"
+    assert line.endswith(f"(FPFH features: an object below the trained size{said}") == used
+    assert line.endswith("(FPFH features: an object below the trained size)") != used
+
+
 @pytest.mark.parametrize("agree", [True, False])
 def test_the_summary_line_says_whether_the_repeats_reproduced_a_fallback_result(agree):
     from types import SimpleNamespace

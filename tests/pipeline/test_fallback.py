@@ -73,6 +73,20 @@ def test_the_fallback_does_each_clouds_work_once_and_gives_what_fpfh_gives(monke
             assert result.T_tgt_src.tobytes() == alone.T_tgt_src.tobytes()
 
 
+def test_coarser_fpfh_features_keep_the_refinements_voxel():
+    a, b = cube(1), moved(cube(1))[0]
+    made = Registrar()
+    scales = [made.cloud_scale(a, "source"), made.cloud_scale(b, "target")]
+    plain = made.fpfh_registration((a, b), scales, 3)
+    coarse = made.fpfh_registration((a, b), scales, 3, coarser=1.4)
+    assert coarse.voxel_size == pytest.approx(1.4 * plain.voxel_size)
+    assert coarse.voxel_choice["voxel_size"] == pytest.approx(1.4 * plain.voxel_size)
+    same = coarse.voxel_choice["refine_voxel_size"] == plain.voxel_choice["refine_voxel_size"]
+    assert same and coarse.num_points_src < plain.num_points_src  # fewer kept points
+    again = made.fpfh_registration((a, b), scales, 3)  # the plain features, as before
+    assert again.T_tgt_src.tobytes() == plain.T_tgt_src.tobytes()
+
+
 def test_fpfh_sizes_a_laser_scanned_room_by_the_room_and_the_learned_features_do_not():
     """A scan from inside a room: its points crowd around the scanner. The learned features'
     auto voxel reads its raw radius; FPFH's (the fallback's registrar, --features fpfh) the

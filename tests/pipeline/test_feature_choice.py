@@ -14,6 +14,8 @@ from byoc_cli.geometry.transforms import axis_angle_matrix
 from byoc_cli.pipeline.feature_choice import (
     AGREE_DEG,
     AGREE_VOXELS,
+    COARSER,
+    COARSER_RMSE,
     REPRODUCE_RMSE,
     REPRODUCED_CONFIDENCE,
     SMOOTH_FPFH,
@@ -241,6 +243,74 @@ def test_the_repeats_gap_reads_the_turn_and_the_move_of_a_point():  # local.corr
     assert shift == pytest.approx(2 * np.sin(np.radians(15.0)))  # a chord of the unit circle
 
 
+class _Coarser(_Made):
+    """:class:`_Made` whose FPFH at coarser features gives ``coarse`` (``(confidence,
+    rmse)`` at x = 3 m, or None: it raises), each call recorded in ``coarser_calls``."""
+
+    def __init__(self, fpfh, coarse, rmse=REPRODUCE_RMSE * 1.1):
+        super().__init__(fpfh, rmse=rmse)
+        self.coarse, self.coarser_calls = coarse, []
+
+    def fpfh_registration(self, clouds, scales, seed=None, changes=(), coarser=1.0):
+        if coarser == 1.0:
+            return super().fpfh_registration(clouds, scales, seed, changes)
+        self.coarser_calls.append((seed, changes[len(SMOOTH_FPFH) :], coarser))
+        if self.coarse is None:
+            raise RegistrationError("no correspondences")
+        confidence, rmse = self.coarse
+        return _registration(confidence, "fpfh", _shifted(1.0), rmse)
+
+
+_SMALL = choose_features((), small=True)
+
+
+def test_an_object_below_the_gate_is_registered_again_with_coarser_features():
+    made = _Coarser(0.2, (0.7, COARSER_RMSE * 0.9))
+    got = smooth_first(made, _CLOUDS, [], None, _SMALL, scale=4.0, seed=5)
+    assert made.coarser_calls == [(5, (), COARSER)]  # no repeats: it passes
+    assert got.confidence == 0.7 and got.passed and got.T_tgt_src[0, 3] == pytest.approx(0.75)
+    note = got.features_choice["coarser"]
+    assert note["used"] and note["factor"] == COARSER and note["first_confidence"] == 0.2
+    assert note["confidence"] == 0.7 and note["rmse"] == COARSER_RMSE * 0.9
+    assert "coarser" in got.timings and "first" in got.timings
+
+
+@pytest.mark.parametrize(
+    "coarse",
+    [
+        (0.7, COARSER_RMSE * 1.05),  # passes, but with the residual of a turned symmetric shape
+        (0.3, REPRODUCE_RMSE * 1.1),  # below the gate, too large a residual to repeat
+        None,  # cannot register the pair
+    ],
+)
+def test_the_coarser_result_is_kept_only_when_it_passes_with_a_small_residual(coarse):
+    made = _Coarser(0.2, coarse)
+    got = smooth_first(made, _CLOUDS, [], None, _SMALL, scale=4.0)
+    assert len(made.coarser_calls) == 1
+    assert got.confidence == 0.2 and not got.passed
+    assert got.T_tgt_src[0, 3] == pytest.approx(0.5)  # the first result, in the target's units
+    note = got.features_choice["coarser"]
+    assert not note["used"] and note["confidence"] == (coarse[0] if coarse else None)
+
+
+def test_a_coarser_result_below_the_gate_that_its_repeats_reproduce_is_kept():
+    made = _Coarser(0.2, (0.3, COARSER_RMSE * 0.9))
+    got = smooth_first(made, _CLOUDS, [], None, _SMALL, None, seed=5)
+    sc2 = (("fitting__estimator", "sc2"),)
+    assert made.coarser_calls == [(5, (), COARSER), (6, (), COARSER), (5, sc2, COARSER)]
+    assert got.confidence == REPRODUCED_CONFIDENCE and got.passed and got.reproduced["agree"]
+    assert got.features_choice["coarser"]["used"]
+
+
+def test_no_coarser_retry_above_the_gate_or_for_a_smooth_pair_of_the_trained_size():
+    above = _Coarser(0.9, (0.95, 0.1))
+    assert smooth_first(above, _CLOUDS, [], None, _SMALL, None).confidence == 0.9
+    smooth = _Coarser(0.2, (0.95, 0.1))
+    got = smooth_first(smooth, _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
+    assert above.coarser_calls == smooth.coarser_calls == [] and got.confidence == 0.2
+    assert "coarser" not in got.features_choice
+
+
 def test_when_neither_registers_the_learned_features_error_is_raised():
     def fails():
         raise RegistrationError("only 2 correspondences")
@@ -255,14 +325,18 @@ def test_the_engine_starts_a_smooth_pair_with_fpfh_unless_told_no_fallback():
 
     # 2 m long: inside the trained size, so its smoothness (not its size) sends it to FPFH
     smooth, other = smooth_scan(0) * 10, smooth_scan(1) * 10
-    got = byoc_cli.Registrar(device="cpu").register(smooth, other)
+    made = byoc_cli.Registrar(device="cpu")
+    got = made.register(smooth, other)
     assert got.features_choice["first"] == "fpfh" and got.features == "fpfh"
+    assert not made.extractor.loaded  # FPFH alone: the shipped encoder is never built
     assert not got.features_choice["small_object"]
     assert max(got.features_choice["rough_share"]) <= SMOOTH_SHARE
     assert "restarts" not in got.timings and got.cues["restart_return"] == 1.0
     assert got.max_points == 3000 and got.recipe["refinement"]["restarts"] is False
-    without = byoc_cli.Registrar(device="cpu", fallback=None).register(smooth, other)
+    learned = byoc_cli.Registrar(device="cpu", fallback=None)
+    without = learned.register(smooth, other)
     assert without.features_choice is None and without.features == "byoc"
+    assert learned.extractor.loaded
 
 
 @pytest.mark.slow

@@ -214,7 +214,8 @@ def summary_line(source: Path, target: Path, result, seconds: float, unit: str |
     elif result.features_choice and result.features_choice["first"] == "fpfh":
         why = _why_fpfh(result.features_choice)
         if result.features == "fpfh":
-            line += f" (FPFH features: {why}{_reproduced(result.reproduced)})"
+            line += f" (FPFH features: {why}{_coarser(result.features_choice)}"
+            line += f"{_reproduced(result.reproduced)})"
         else:  # the learned features' second opinion was kept
             first = fallback["first_confidence"] or 0.0
             line += f" ({why}; FPFH reached confidence {first:.3f})"
@@ -241,6 +242,18 @@ def _why_fpfh(choice: dict) -> str:
     if choice.get("small_object") and max(shares) > choice["smooth_share"]:
         return f"an object below the trained size, {rough} rough"
     return f"smooth surfaces, {rough} rough"
+
+
+def _coarser(choice: dict) -> str:
+    """What the retry with coarser FPFH features of an object said when its result was kept
+    (the report's ``features_choice.coarser``), for :func:`summary_line`."""
+    note = choice.get("coarser")
+    if not note or not note["used"]:
+        return ""
+    return (
+        f"; features at {note['factor']:g}x the voxel, the first try reached confidence "
+        f"{note['first_confidence']:.3f}"
+    )
 
 
 def _reproduced(note: dict | None) -> str:

@@ -150,11 +150,13 @@ class Fallback:
         scales: list,
         seed: int,
         changes: tuple[tuple[str, Any], ...] = (),
+        coarser: float = 1.0,
     ) -> Registration:
         """FPFH's registration of ``clouds`` (``(N, 3)`` in metres), refined by the multiscale
         ICP, from the :class:`~byoc_cli.pipeline.scale.CloudScale` ``scales`` that the learned
         registrar measured (read only with an auto voxel; None otherwise), by the registrar of
-        ``changes`` (:meth:`registrar`); T in metres.
+        ``changes`` (:meth:`registrar`), its features at ``coarser`` times the auto voxel (the
+        refinement's voxel as it is); T in metres.
 
         Raises:
             RegistrationError: FPFH cannot register them.
@@ -163,7 +165,9 @@ class Fallback:
         settings = {PER_CALL[path]: value for path, value in changes if path in PER_CALL}
         fpfh = self.registrar(kept)
         scales = scales if fpfh.auto_voxel else None
-        return register_clouds(fpfh, clouds, scales, refine="multiscale", seed=seed, **settings)
+        return register_clouds(
+            fpfh, clouds, scales, coarser, refine="multiscale", seed=seed, **settings
+        )
 
 
 def changes_for(scales: list) -> tuple[tuple[str, Any], ...]:
@@ -213,14 +217,19 @@ def large_panoramas(made: Any, src: Features, tgt: Features) -> bool:
 
 
 def register_clouds(
-    registrar: Any, clouds: tuple[np.ndarray, np.ndarray], scales: list | None, **settings: Any
+    registrar: Any,
+    clouds: tuple[np.ndarray, np.ndarray],
+    scales: list | None,
+    coarser: float = 1.0,
+    **settings: Any,
 ) -> Registration:
     """What ``registrar.register`` gives for two arrays already in metres (``scale=1.0``),
     from their measured ``scales`` (auto voxel; :class:`~byoc_cli.pipeline.scale.CloudScale`,
     labelled ``"source"`` and ``"target"``) and the features of each array at its voxel
     computed once while among the most recent (a fallback registers the same clouds in many
-    pairs of a batch); the same result, bytes and all. ``settings``: the keywords of
-    :meth:`~byoc_cli.pipeline.registrar.Registrar.match`."""
+    pairs of a batch); the same result, bytes and all. ``coarser``: the features' voxel is
+    this many times the auto voxel (the refinement's stays; only with an auto voxel).
+    ``settings``: the keywords of :meth:`~byoc_cli.pipeline.registrar.Registrar.match`."""
     start = time.perf_counter()
     names = ("source", "target")
     choice, voxels = None, [(None, None, 1.0)] * 2
@@ -228,6 +237,8 @@ def register_clouds(
         for points, scale in zip(clouds, scales, strict=True):  # measured: kept for match
             registrar.remember_scale(points, scale)
         choice = registrar.voxel_for(*scales)
+        if coarser != 1.0:
+            choice = choice._replace(voxel_size=choice.voxel_size * coarser)
         voxels = [(choice.voxel_size, choice.refine_voxel, choice.keep_of(k)) for k in (0, 1)]
     src, tgt = (
         registrar.features_at(points, names[k], voxels[k]) for k, points in enumerate(clouds)

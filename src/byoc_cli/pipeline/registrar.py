@@ -210,11 +210,11 @@ class Registrar(Featurizer):
             scans=Scans(scan_lines(self, src, tgt), rooms),
         )
 
-    def fpfh_registration(self, clouds: tuple, scales: list, seed=None, changes=()):
+    def fpfh_registration(self, clouds: tuple, scales: list, seed=None, changes=(), coarser=1.0):
         """:meth:`Fallback.register <byoc_cli.pipeline.fallback.Fallback.register>` of
         ``clouds`` (seed None: the recipe's): FPFH's registration, T in metres."""
         seed = self.recipe.seed if seed is None else seed
-        return self._fallback.register(clouds, scales, seed, changes)
+        return self._fallback.register(clouds, scales, seed, changes, coarser)
 
     def register(
         self,
