@@ -724,7 +724,7 @@ def test_the_summary_line_says_when_coarser_features_registered_an_object(used):
 
     from byoc_cli.cli.register import summary_line
 
-    coarser = {"factor": 1.4, "confidence": 0.7, "used": used, "first_confidence": 0.212}
+    coarser = {"used": 1.4 if used else None, "first_confidence": 0.212, "tries": [{}]}
     choice = {"first": "fpfh", "rough_share": [], "small_object": True, "coarser": coarser}
     result = SimpleNamespace(
         path="global", confidence=0.7, num_inliers=45, num_correspondences=2000,

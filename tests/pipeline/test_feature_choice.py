@@ -244,7 +244,7 @@ def test_the_repeats_gap_reads_the_turn_and_the_move_of_a_point():  # local.corr
 
 
 class _Coarser(_Made):
-    """:class:`_Made` whose FPFH at coarser features gives ``coarse`` (``(confidence,
+    """:class:`_Made` whose FPFH at coarser features gives ``coarse[factor]`` (``(confidence,
     rmse)`` at x = 3 m, or None: it raises), each call recorded in ``coarser_calls``."""
 
     def __init__(self, fpfh, coarse, rmse=REPRODUCE_RMSE * 1.1):
@@ -255,57 +255,71 @@ class _Coarser(_Made):
         if coarser == 1.0:
             return super().fpfh_registration(clouds, scales, seed, changes)
         self.coarser_calls.append((seed, changes[len(SMOOTH_FPFH) :], coarser))
-        if self.coarse is None:
+        if self.coarse.get(coarser) is None:
             raise RegistrationError("no correspondences")
-        confidence, rmse = self.coarse
+        confidence, rmse = self.coarse[coarser]
         return _registration(confidence, "fpfh", _shifted(1.0), rmse)
 
 
 _SMALL = choose_features((), small=True)
+_KEPT = COARSER_RMSE * 0.9  # a residual the tries keep
+_TURNED = COARSER_RMSE * 1.05  # a symmetric shape turned: passes, with too large a residual
 
 
 def test_an_object_below_the_gate_is_registered_again_with_coarser_features():
-    made = _Coarser(0.2, (0.7, COARSER_RMSE * 0.9))
+    made = _Coarser(0.2, {COARSER[0]: (0.7, _KEPT)})
     got = smooth_first(made, _CLOUDS, [], None, _SMALL, scale=4.0, seed=5)
-    assert made.coarser_calls == [(5, (), COARSER)]  # no repeats: it passes
+    assert made.coarser_calls == [(5, (), COARSER[0])]  # no repeats: it passes
     assert got.confidence == 0.7 and got.passed and got.T_tgt_src[0, 3] == pytest.approx(0.75)
     note = got.features_choice["coarser"]
-    assert note["used"] and note["factor"] == COARSER and note["first_confidence"] == 0.2
-    assert note["confidence"] == 0.7 and note["rmse"] == COARSER_RMSE * 0.9
+    assert note["used"] == COARSER[0] and note["first_confidence"] == 0.2
+    assert note["tries"] == [{"factor": COARSER[0], "voxel_size": 0.05, "confidence": 0.7,
+                              "rmse": _KEPT}]  # fmt: skip
     assert "coarser" in got.timings and "first" in got.timings
+
+
+def test_the_next_factor_is_tried_when_the_first_is_not_kept():
+    made = _Coarser(0.2, {COARSER[0]: (0.7, _TURNED), COARSER[1]: (0.6, _KEPT)})
+    got = smooth_first(made, _CLOUDS, [], None, _SMALL, scale=4.0, seed=5)
+    assert [factor for _, _, factor in made.coarser_calls] == list(COARSER)
+    assert got.confidence == 0.6 and got.passed
+    note = got.features_choice["coarser"]
+    assert note["used"] == COARSER[1] and [t["confidence"] for t in note["tries"]] == [0.7, 0.6]
 
 
 @pytest.mark.parametrize(
     "coarse",
     [
-        (0.7, COARSER_RMSE * 1.05),  # passes, but with the residual of a turned symmetric shape
+        (0.7, _TURNED),
         (0.3, REPRODUCE_RMSE * 1.1),  # below the gate, too large a residual to repeat
         None,  # cannot register the pair
     ],
 )
-def test_the_coarser_result_is_kept_only_when_it_passes_with_a_small_residual(coarse):
-    made = _Coarser(0.2, coarse)
+def test_a_coarser_result_is_kept_only_when_it_passes_with_a_small_residual(coarse):
+    made = _Coarser(0.2, dict.fromkeys(COARSER, coarse))
     got = smooth_first(made, _CLOUDS, [], None, _SMALL, scale=4.0)
-    assert len(made.coarser_calls) == 1
+    assert len(made.coarser_calls) == len(COARSER)
     assert got.confidence == 0.2 and not got.passed
     assert got.T_tgt_src[0, 3] == pytest.approx(0.5)  # the first result, in the target's units
     note = got.features_choice["coarser"]
-    assert not note["used"] and note["confidence"] == (coarse[0] if coarse else None)
+    assert note["used"] is None
+    assert [t["confidence"] for t in note["tries"]] == [coarse[0] if coarse else None] * 2
 
 
 def test_a_coarser_result_below_the_gate_that_its_repeats_reproduce_is_kept():
-    made = _Coarser(0.2, (0.3, COARSER_RMSE * 0.9))
+    made = _Coarser(0.2, {COARSER[0]: (0.3, _KEPT)})
     got = smooth_first(made, _CLOUDS, [], None, _SMALL, None, seed=5)
     sc2 = (("fitting__estimator", "sc2"),)
-    assert made.coarser_calls == [(5, (), COARSER), (6, (), COARSER), (5, sc2, COARSER)]
+    factor = COARSER[0]
+    assert made.coarser_calls == [(5, (), factor), (6, (), factor), (5, sc2, factor)]
     assert got.confidence == REPRODUCED_CONFIDENCE and got.passed and got.reproduced["agree"]
-    assert got.features_choice["coarser"]["used"]
+    assert got.features_choice["coarser"]["used"] == factor
 
 
 def test_no_coarser_retry_above_the_gate_or_for_a_smooth_pair_of_the_trained_size():
-    above = _Coarser(0.9, (0.95, 0.1))
+    above = _Coarser(0.9, dict.fromkeys(COARSER, (0.95, 0.1)))
     assert smooth_first(above, _CLOUDS, [], None, _SMALL, None).confidence == 0.9
-    smooth = _Coarser(0.2, (0.95, 0.1))
+    smooth = _Coarser(0.2, dict.fromkeys(COARSER, (0.95, 0.1)))
     got = smooth_first(smooth, _CLOUDS, [], None, choose_features([0.0, 0.0]), None)
     assert above.coarser_calls == smooth.coarser_calls == [] and got.confidence == 0.2
     assert "coarser" not in got.features_choice

@@ -248,10 +248,10 @@ def _coarser(choice: dict) -> str:
     """What the retry with coarser FPFH features of an object said when its result was kept
     (the report's ``features_choice.coarser``), for :func:`summary_line`."""
     note = choice.get("coarser")
-    if not note or not note["used"]:
+    if not note or note["used"] is None:
         return ""
     return (
-        f"; features at {note['factor']:g}x the voxel, the first try reached confidence "
+        f"; features at {note['used']:g}x the voxel, the first try reached confidence "
         f"{note['first_confidence']:.3f}"
     )
 

@@ -75,12 +75,14 @@ AGREE_VOXELS = 2.0
 #: :data:`SMOOTH_FPFH` (the next seed's RANSAC; the ``sc2`` estimator on the same matches)
 REPEATS = (("next seed", 1, ()), ("sc2", 0, (("fitting__estimator", "sc2"),)))
 #: an object below the trained size whose FPFH result stays below the gate (repeats and all)
-#: is registered once more with FPFH features at this many times the auto voxel (the
-#: refinement's voxel as it is): coarser histograms see more of a noisy surface's shape
-COARSER = 1.4
-#: that result is kept when it passes the gate and its refinement ends with a residual
-#: (``cues["rmse"]``, in refinement voxels) at most this; wrong ones (symmetric shapes
-#: turned onto themselves, 60 to 180 deg) ended at 0.244 to 0.336 on the development sets
+#: is registered again with FPFH features at these many times the auto voxel, in turn, until
+#: one result is kept (the refinement's voxel as it is): coarser histograms see more of a
+#: noisy surface's shape
+COARSER = (1.4, 2.0)
+#: such a result is kept when it passes the gate and its refinement ends with a residual
+#: (``cues["rmse"]``, in refinement voxels) at most this: on the development sets the wrong
+#: results that passed ended at 0.244 to 0.336 (x 1.4) and 0.242 to 0.349 (x 2), mostly
+#: symmetric shapes turned onto themselves; the right ones at 0.184 to 0.292
 COARSER_RMSE = 0.24
 
 
@@ -225,8 +227,8 @@ def smooth_first(
     if first is not None and choice.small_object and first.confidence < made.fallback_below:
         first, picked["coarser"] = retry_coarser(
             first,
-            lambda offset, changes: made.fpfh_registration(
-                clouds, scales, (repeat + offset) % 2**64, SMOOTH_FPFH + changes, COARSER
+            lambda factor, offset, changes: made.fpfh_registration(
+                clouds, scales, (repeat + offset) % 2**64, SMOOTH_FPFH + changes, factor
             ),
             made.fallback_below,
             clouds[0].mean(axis=0),
@@ -254,54 +256,72 @@ def smooth_first(
 
 def retry_coarser(
     first: Registration,
-    fit: Callable[[int, tuple], Registration],
+    fit: Callable[[float, int, tuple], Registration],
     gate: float,
     centroid: np.ndarray,
     scale: float = 1.0,
 ) -> tuple[Registration, dict]:
-    """An object's FPFH result ``first`` below the ``gate``, and the registration of the same
-    pair with FPFH features :data:`COARSER` times coarser (with its repeats,
-    :func:`reproduce`, where :func:`worth_repeating`): the second when it passes the gate
+    """An object's FPFH result ``first`` below the ``gate``, and the registrations of the same
+    pair with FPFH features at each factor of :data:`COARSER` in turn (each with its repeats,
+    :func:`reproduce`, where :func:`worth_repeating`): the first of them that passes the gate
     with a residual at most :data:`COARSER_RMSE`, else ``first``.
 
     Args:
         first: the FPFH registration at the auto voxel, ``T_tgt_src`` in the input's units
             (times ``scale``: metres).
-        fit: ``fit(seed_offset, changes)`` registers the pair with the coarser features (T in
-            metres), raising :class:`~byoc_cli.errors.RegistrationError` when it cannot.
+        fit: ``fit(factor, seed_offset, changes)`` registers the pair with features at
+            ``factor`` times the auto voxel (T in metres), raising
+            :class:`~byoc_cli.errors.RegistrationError` when it cannot.
         gate: the confidence a result passes at.
         centroid: ``(3,)`` the source's centroid in metres (for the repeats).
         scale: the factor ``first``'s translation was divided by (metres to its units).
 
     Returns:
-        ``(kept, note)``: the kept registration (``timings["coarser"]``: the retry's seconds)
-        and the report's ``features_choice.coarser``: ``factor``, ``voxel_size`` (metres),
-        ``confidence``, ``rmse`` (None where FPFH could not register the pair), ``used``,
-        ``first_confidence`` (``first``'s).
+        ``(kept, note)``: the kept registration (``timings["coarser"]``: the tries' seconds)
+        and the report's ``features_choice.coarser``: ``first_confidence`` (``first``'s),
+        ``used`` (the factor of the kept try, None for none) and ``tries``, one per factor
+        tried: ``factor``, ``voxel_size`` (metres), ``confidence`` and ``rmse`` (None where
+        FPFH could not register the pair).
     """
     start = time.perf_counter()
-    try:
-        again = fit(0, ())
-    except RegistrationError:
-        again = None
-    if again is not None:
-        T = again.T_tgt_src.copy()
-        T[:3, 3] /= scale
-        again = again._replace(T_tgt_src=T)
-        if worth_repeating(again, gate):
-            again = reproduce(again, fit, centroid, scale)
-    rmse = None if again is None else (again.cues or {}).get("rmse", float("inf"))
-    used = again is not None and again.confidence >= gate and rmse <= COARSER_RMSE
+    kept, tries = first, []
+    for factor in COARSER:
+        again = _coarser_try(factor, fit, gate, centroid, scale)
+        rmse = None if again is None else (again.cues or {}).get("rmse", float("inf"))
+        tries.append(
+            {
+                "factor": factor,
+                "voxel_size": None if again is None else again.voxel_size,
+                "confidence": None if again is None else again.confidence,
+                "rmse": rmse,
+            }
+        )
+        if again is not None and again.confidence >= gate and rmse <= COARSER_RMSE:
+            kept = again
+            break
     note = {
-        "factor": COARSER,
-        "voxel_size": None if again is None else again.voxel_size,
-        "confidence": None if again is None else again.confidence,
-        "rmse": rmse,
-        "used": used,
         "first_confidence": first.confidence,
+        "used": tries[-1]["factor"] if kept is not first else None,
+        "tries": tries,
     }
-    kept = again if used else first
     return kept._replace(timings={**kept.timings, "coarser": time.perf_counter() - start}), note
+
+
+def _coarser_try(factor, fit, gate, centroid, scale) -> Registration | None:
+    """One try of :func:`retry_coarser` at ``factor`` (T in the input's units), None where
+    FPFH cannot register the pair."""
+    try:
+        again = fit(factor, 0, ())
+    except RegistrationError:
+        return None
+    T = again.T_tgt_src.copy()
+    T[:3, 3] /= scale
+    again = again._replace(T_tgt_src=T)
+    if worth_repeating(again, gate):
+        again = reproduce(
+            again, lambda offset, changes: fit(factor, offset, changes), centroid, scale
+        )
+    return again
 
 
 def worth_repeating(first: Registration, gate: float) -> bool:
