@@ -161,7 +161,8 @@ def test_clouds_brought_to_the_features_scale_are_not_retried(monkeypatch):
     got = registrar.match(scaled, scaled, seed=3)
     assert seen == [3, ("fallback", 0.1, 3)] and got.retries is None
     assert at_own_voxel(registrar, _features(registrar.voxel_size))
-    given = Registrar(fallback="fpfh", voxel_size=0.05)  # a voxel given: always its own
+    with pytest.warns(UserWarning, match="differs from the 0.025 m"):  # said, not refused
+        given = Registrar(fallback="fpfh", voxel_size=0.05)  # a voxel given: always its own
     assert at_own_voxel(given, _features(0.05))
 
 
