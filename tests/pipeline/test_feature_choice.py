@@ -108,8 +108,8 @@ class _Made:
         self.repeats = list(repeats or [])
         self.calls = []
 
-    def fpfh_registration(self, clouds, scales, seed=None, changes=()):
-        assert changes[: len(SMOOTH_FPFH)] == SMOOTH_FPFH
+    def fpfh_registration(self, clouds, scales, seed=None, changes=(), coarser=1.0):
+        assert changes[: len(SMOOTH_FPFH)] == SMOOTH_FPFH and coarser == 1.0
         self.calls.append((seed, changes[len(SMOOTH_FPFH) :]))
         if len(self.calls) == 1:
             if self.fpfh is None:

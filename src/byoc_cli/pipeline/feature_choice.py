@@ -203,37 +203,27 @@ def smooth_first(
         RegistrationError: neither could register the pair.
     """
     start = time.perf_counter()
+    repeat = made.recipe.seed if seed is None else seed
+    units = 1.0 if scale is None else scale
+
+    def fit(factor: float, offset: int, changes: tuple) -> Registration:
+        """FPFH at ``factor`` times the auto voxel, the seed ``offset`` on (T in metres)."""
+        seed_of = (repeat + offset) % 2**64
+        return made.fpfh_registration(clouds, scales, seed_of, SMOOTH_FPFH + changes, factor)
+
     try:
-        first = made.fpfh_registration(clouds, scales, seed, SMOOTH_FPFH)
-        T = first.T_tgt_src.copy()
-        T[:3, 3] /= 1.0 if scale is None else scale
-        first = first._replace(T_tgt_src=T)
+        first = in_units(fit(1.0, 0, ()), units)
     except RegistrationError:
         if learned is None:
             raise
         first = None
     seconds = time.perf_counter() - start
     picked = choice.as_dict()
-    repeat = made.recipe.seed if seed is None else seed
-    if first is not None and worth_repeating(first, made.fallback_below):
-        first = reproduce(
-            first,
-            lambda offset, changes: made.fpfh_registration(
-                clouds, scales, (repeat + offset) % 2**64, SMOOTH_FPFH + changes
-            ),
-            clouds[0].mean(axis=0),
-            1.0 if scale is None else scale,
-        )
-    if first is not None and choice.small_object and first.confidence < made.fallback_below:
-        first, picked["coarser"] = retry_coarser(
-            first,
-            lambda factor, offset, changes: made.fpfh_registration(
-                clouds, scales, (repeat + offset) % 2**64, SMOOTH_FPFH + changes, factor
-            ),
-            made.fallback_below,
-            clouds[0].mean(axis=0),
-            1.0 if scale is None else scale,
-        )
+    gate = made.fallback_below
+    if first is not None and worth_repeating(first, gate):
+        first = reproduce(first, lambda o, c: fit(1.0, o, c), clouds[0].mean(axis=0), units)
+    if first is not None and choice.small_object and first.confidence < gate:
+        first, picked["coarser"] = retry_coarser(first, fit, gate, clouds[0].mean(axis=0), units)
     if first is not None and (learned is None or first.confidence >= made.fallback_below):
         timings = {**first.timings, "first": seconds}
         passed = first.confidence >= made.fallback_below
@@ -314,14 +304,20 @@ def _coarser_try(factor, fit, gate, centroid, scale) -> Registration | None:
         again = fit(factor, 0, ())
     except RegistrationError:
         return None
-    T = again.T_tgt_src.copy()
-    T[:3, 3] /= scale
-    again = again._replace(T_tgt_src=T)
+    again = in_units(again, scale)
     if worth_repeating(again, gate):
         again = reproduce(
             again, lambda offset, changes: fit(factor, offset, changes), centroid, scale
         )
     return again
+
+
+def in_units(result: Registration, scale: float) -> Registration:
+    """``result`` (T in metres) with its translation divided by ``scale`` (metres to the
+    input's units)."""
+    T = result.T_tgt_src.copy()
+    T[:3, 3] /= scale
+    return result._replace(T_tgt_src=T)
 
 
 def worth_repeating(first: Registration, gate: float) -> bool:

@@ -300,20 +300,30 @@ def _named_config(path: str | Path, arch: str, raw: dict[str, Any]) -> EncoderCo
 
 def read_metadata(path: str | Path) -> tuple[dict[str, Any], str]:
     """The validated metadata of a weights file and the SHA-256 of the whole file (hex),
-    without reading its tensors: what a report says of the weights before the encoder is
+    without decoding its tensors: what a report says of the weights before the encoder is
     built (:func:`load_weights` checks the tensors).
 
     Raises:
         WeightsError: the file is missing, not a regular file, larger than a weights file may
             be, not safetensors, or its metadata does not match the spec.
     """
-    path = Path(path)
+    meta, _, blob = _read_checked(Path(path))
+    return meta, hashlib.sha256(blob).hexdigest()
+
+
+def _read_checked(path: Path) -> tuple[dict[str, Any], EncoderConfig, bytes]:
+    """The validated metadata, the encoder configuration and the whole file's bytes of a
+    weights file; the header and the metadata are checked before the tensor data is read.
+
+    Raises:
+        WeightsError: as :func:`read_metadata`.
+    """
     with open_input(path, "weights", WeightsError) as f:
         meta = _metadata(path, _read_header(path, f))
-        validate_metadata(path, meta)
+        config = validate_metadata(path, meta)
         f.seek(0)
         blob = f.read(SIZE_CAPS["weights"][0] + 1)
-    return meta, hashlib.sha256(blob).hexdigest()
+    return meta, config, blob
 
 
 def load_weights(path: str | Path) -> LoadedWeights:
@@ -328,13 +338,7 @@ def load_weights(path: str | Path) -> LoadedWeights:
     from safetensors.torch import load
 
     path = Path(path)
-    with open_input(path, "weights", WeightsError) as f:
-        # the header and the metadata are checked before the tensor data is read
-        header = _read_header(path, f)
-        meta = _metadata(path, header)
-        config = validate_metadata(path, meta)
-        f.seek(0)
-        blob = f.read(SIZE_CAPS["weights"][0] + 1)
+    meta, config, blob = _read_checked(path)
     try:
         tensors = load(blob)
     except (SafetensorError, ValueError, RuntimeError) as exc:
