@@ -603,25 +603,32 @@ def test_scaling_runs_open3d_on_the_smallest_street_and_prints_its_table(tmp_pat
     assert np.loadtxt(tmp_path / "pairs" / "street-10k" / "T_gt.txt").shape == (4, 4)
 
 
-def test_kdtree_times_each_tree_and_the_former_grid_on_the_same_clouds(shared_data):
+def _small_benchmark(script: str) -> list[str]:
+    """The stdout lines of ``benchmarks/SCRIPT --repeat 1 --sizes N`` (N: 2000 for the k-d
+    trees, 3000 for the first point per voxel), which must exit 0."""
+    size = "2000" if script == "kdtree.py" else "3000"
     run = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "kdtree.py"),
-            "--repeat",
-            "1",
-            "--sizes",
-            "2000",
-        ],
+        [sys.executable, str(ROOT / "benchmarks" / script), "--repeat", "1", "--sizes", size],
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert run.returncode == 0, run.stderr
-    rows = run.stdout.strip().splitlines()
+    return run.stdout.strip().splitlines()
+
+
+def test_kdtree_times_each_tree_and_the_former_grid_on_the_same_clouds(shared_data):
+    rows = _small_benchmark("kdtree.py")
     assert "pykdtree" in rows[0] and "cell grid (before)" in rows[0]
     assert [r.split()[0] for r in rows[1:]] == ["demo", "lidar", "lidar"]
     assert all(r.count(" s ") == 4 for r in rows[1:])
+
+
+def test_first_per_voxel_checks_and_times_both_ways_on_the_same_clouds(shared_data):
+    rows = _small_benchmark("first_per_voxel.py")
+    assert rows[0].split() == ["cloud", "points", "kept", "numpy", "byoc", "ratio"]
+    assert [r.split()[:2] for r in rows[1:]] == [["demo", "source"], ["ground", "3k"]]
+    assert all(0 < int(r.split()[-4]) <= int(r.split()[-5]) for r in rows[1:])
 
 
 def _scan_lines(*args: str) -> subprocess.CompletedProcess:

@@ -16,6 +16,7 @@ from byoc_cli.geometry.sampling import (
     _first_per_voxel,
     cloud_radius,
     even_radius,
+    first_of_keys,
     linear_share,
     local_frame,
     nearest_distances,
@@ -233,6 +234,16 @@ def test_the_kept_points_are_those_of_voxelize():
         for voxel in (0.02, 0.1, 0.7):
             expected = voxelize(points, voxel).point_index.numpy()
             np.testing.assert_array_equal(_first_per_voxel(pts, voxel), expected)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(-(2**62), 2**62), max_size=300), st.integers(1, 40))
+def test_first_of_keys_is_the_first_occurrence_of_each_key(values, distinct):
+    keys = np.array([v % distinct for v in values] + values[:5], dtype=np.int64)
+    expected = np.sort(np.unique(keys, return_index=True)[1])
+    got = first_of_keys(keys)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_lines_are_lines_until_the_voxel_reaches_across_them():

