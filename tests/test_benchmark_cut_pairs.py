@@ -127,3 +127,47 @@ def test_view_cuts_leave_nothing_that_a_sensor_saw_through(tmp_path, shared_data
             shares[kind].append(note["free_space"])
     assert len(shares["view"]) == 9 and max(shares["view"]) < MAX_FREE_SPACE / 2
     assert max(shares["plane"]) > max(shares["view"])
+
+
+@pytest.mark.realdata
+def test_turn_gives_each_pair_a_rotation_of_the_benchmark_and_keeps_the_truth_of_the_points(
+    tmp_path, shared_data
+):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from byoc_cli.api import load_cloud
+    from cut_pairs import benchmark_rotations
+
+    fragments = shared_data / "3dmatch" / "sample" / "3DMatch"
+    gt_dir = shared_data / "3dmatch" / "benchmarks" / "3DLoMatch"
+    cut, turned = tmp_path / "cut", tmp_path / "turned"
+    run = _run("make", "--fragments", str(fragments), "--out", str(cut), "--per-pair", "1")
+    assert run.returncode == 0, run.stderr
+    run = _run("turn", str(cut), "--out", str(turned), "--seed", "3", "--gt-dir", str(gt_dir))
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "3 pairs"
+    assert (turned / "pairs.txt").read_text() == (cut / "pairs.txt").read_text()
+    rotations = benchmark_rotations(gt_dir)
+    assert len(rotations) == 1781
+    for line in (turned / "pairs.txt").read_text().split("\n")[:-1]:
+        name = line.split()[0].split("/")[0]
+        old, new = np.loadtxt(cut / name / "T_gt.txt"), np.loadtxt(turned / name / "T_gt.txt")
+        assert np.abs(rotations - new[:3, :3]).max(axis=(1, 2)).min() < 1e-12  # drawn from them
+        assert np.array_equal(new[:3, 3], old[:3, 3])
+        before = load_cloud(cut / name / "source.ply", scale=1.0).astype(np.float64)
+        after = load_cloud(turned / name / "source.ply", scale=1.0).astype(np.float64)
+        # the same points in the target's frame under each truth, up to gt.log's printed
+        # digits (its rotations are orthonormal to about 1e-4: 0.5 mm at 5 m)
+        np.testing.assert_allclose(
+            after @ new[:3, :3].T + new[:3, 3], before @ old[:3, :3].T + old[:3, 3], atol=2e-3
+        )
+        assert np.array_equal(
+            load_cloud(turned / name / "target.ply", scale=1.0),
+            load_cloud(cut / name / "target.ply", scale=1.0),
+        )
+        info = json.loads((turned / name / "info.json").read_text())
+        angle = math.degrees(math.acos(min(1.0, (np.trace(new[:3, :3]) - 1) / 2)))
+        assert info["turned_deg"] == pytest.approx(angle)
+    run = _run("turn", str(tmp_path / "nothing"), "--out", str(turned), "--gt-dir", str(gt_dir))
+    assert run.returncode == 2 and "pairs.txt: no such file" in run.stderr.splitlines()[-1]
+    run = _run("turn", str(cut), "--out", str(turned), "--gt-dir", str(tmp_path / "cut"))
+    assert run.returncode == 2 and "no gt.log with a pair under it" in run.stderr

@@ -1,5 +1,6 @@
-"""`byoc register --turns`: the demo pair with its source turned half round about its up axis
-(the 3DMatch fragments' vertical), as two stations of a terrestrial scanner are."""
+"""`byoc register --turns` and the default's turned tries (`auto`): the demo pair with its
+source turned half round about its up axis (the 3DMatch fragments' vertical), as two stations
+of a terrestrial scanner, or two fragments of a sweep, are."""
 
 from __future__ import annotations
 
@@ -44,6 +45,20 @@ def test_turned_learned_features_register_the_turned_pair(turned_demo, tmp_path)
     assert report["features"] == "byoc" and report["recipe"]["matching"]["turns"]
     assert turns["kept_deg"] in (120.0, 180.0, 240.0) and not turns["ambiguous"]
     assert len(turns["tries"]) == 6 and report["timings_s"]["turns"] > 0
+
+
+def test_the_default_tries_the_turns_of_fragments_at_their_own_voxel(turned_demo, tmp_path):
+    """No flags: the byoc preset's turned tries (``auto``; no structure check) register the
+    turned demo pair, about the target's up axis."""
+    result, report, T = _run(turned_demo, tmp_path)
+    assert result.exit_code == 0, result.stderr
+    D = np.linalg.inv(T) @ turned_demo[2]
+    assert rotation_angle_deg(D[:3, :3]) < 5 and np.linalg.norm(D[:3, 3]) < 0.1
+    turns = report["turns"]
+    assert report["recipe"]["matching"]["turns"] == "auto" and turns["aligned"]
+    assert turns["kept_deg"] in (120.0, 180.0, 240.0) and not turns["ambiguous"]
+    assert report["confidence"] < turns["model_confidence"]  # a turned pick: discounted
+    assert "structure" not in report["timings_s"]
 
 
 def test_without_turns_the_learned_features_do_not_find_it(turned_demo, tmp_path):

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from byoc_cli.errors import ShapeError
-from byoc_cli.geometry.orientation import turn_about, up_axis
+from byoc_cli.geometry.orientation import aligning, turn_about, up_axis
 from byoc_cli.geometry.transforms import random_rigid_transform
 from tests.pipeline._rooms import ROOM, sample_boxes
 
@@ -91,3 +93,33 @@ def test_four_quarter_turns_are_none():
 def test_a_turn_refuses_a_zero_axis():
     with pytest.raises(ShapeError):
         turn_about(np.zeros(3), 90.0, np.zeros(3))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    st.lists(st.floats(-5, 5), min_size=3, max_size=3),
+)
+def test_aligning_turns_one_direction_onto_the_other_about_the_centre(a, b, c):
+    a, b, c = np.array(a), np.array(b), np.array(c)
+    assume(np.linalg.norm(a) > 0.1 and np.linalg.norm(b) > 0.1)
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    assume(a @ b > -0.99)
+    T = aligning(a, b, c)
+    assert np.allclose(T[:3, :3] @ a, b, atol=1e-9)
+    assert np.allclose(T[:3, :3] @ c + T[:3, 3], c, atol=1e-9)
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    # the smallest rotation: its angle is the angle between the two directions
+    angle = math.degrees(math.acos(min(1.0, (np.trace(T[:3, :3]) - 1) / 2)))
+    assert angle == pytest.approx(math.degrees(math.acos(min(1.0, a @ b))), abs=1e-6)
+
+
+def test_aligning_parallel_directions_is_the_identity_and_opposite_ones_are_refused():
+    assert np.allclose(
+        aligning(np.array([0, 0, 2.0]), np.array([0, 0, 1.0]), np.ones(3)), np.eye(4)
+    )
+    with pytest.raises(ShapeError, match="opposite"):
+        aligning(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]), np.zeros(3))
+    with pytest.raises(ShapeError):
+        aligning(np.zeros(3), np.array([0, 0, 1.0]), np.zeros(3))

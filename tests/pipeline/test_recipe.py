@@ -59,6 +59,22 @@ def test_a_file_may_name_the_sc2_estimator_and_the_config_carries_it(tmp_path):
     assert PRESETS["byoc"].fitting.estimator == PRESETS["fpfh"].fitting.estimator == "ransac"
 
 
+def test_turns_take_auto_true_or_false_and_only_true_checks_the_structure(tmp_path):
+    assert PRESETS["byoc"].matching.turns == "auto" and PRESETS["fpfh"].matching.turns is False
+    assert register_config(PRESETS["byoc"]).structure_check is False
+    path = tmp_path / "r.toml"
+    for text, value in (("true", True), ("false", False), ('"auto"', "auto")):
+        path.write_text(f"[matching]\nturns = {text}\n")
+        got = load_recipe(path)
+        assert got.matching.turns == value
+        assert register_config(got).structure_check is (value is True)
+        path.write_text(recipe_to_toml(got))
+        assert load_recipe(path) == got
+    path.write_text('[matching]\nturns = "always"\n')
+    with pytest.raises(InputError, match=r"matching\.turns"):
+        load_recipe(path)
+
+
 @pytest.mark.parametrize(
     ("text", "problem"),
     [

@@ -153,13 +153,15 @@ def _options() -> dict[str, Callable]:
             "--turns/--no-turns",
             default=None,
             help="With byoc features: when the confidence is below 0.95, extract the source's "
-            "features again turned by 60 to 300 deg (every 60) about its up axis and keep the "
-            "most confident result; a result that fits as well turned elsewhere exits 3 as "
-            "ambiguous. With any features, a result that passes is turned 90, 180 and 270 deg "
-            "about the up axis, and it exits 3 as ambiguous when a turn fits what is not floor, "
-            "ceiling or wall as well. For scans turned far apart about the vertical "
-            "(terrestrial scanner stations, turntables): docs/registering.md, Turned scans. "
-            f"{_default('matching.turns')}",
+            "features again turned by 60 to 300 deg (every 60) about the up axis (the "
+            "source's tilted onto the target's) and keep the most confident result; a result "
+            "that fits as well turned elsewhere exits 3 as ambiguous. --turns also turns a "
+            "result that passes 90, 180 and 270 deg, with any features, and it exits 3 as "
+            "ambiguous when a turn fits what is not floor, ceiling or wall as well. For scans "
+            "turned far apart about the vertical (terrestrial scanner stations, turntables): "
+            "docs/registering.md, Turned scans. The byoc preset's auto: the turned tries "
+            "alone, where the features see the clouds at their own voxel (depth frames, RGB-D "
+            f"fragments). {_default('matching.turns')}",
         ),
         "seed": click.option(
             "--seed",

@@ -117,3 +117,26 @@ def turn_about(axis: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarr
     T[:3, :3] = axis_angle_to_matrix(turn).numpy()
     T[:3, 3] = c - T[:3, :3] @ c
     return T
+
+
+def aligning(axis: np.ndarray, onto: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``(4, 4)`` float64: the smallest rotation that turns the direction ``axis (3,)`` onto
+    ``onto (3,)``, about ``centre (3,)`` (the identity for parallel directions), on column
+    vectors.
+
+    Raises:
+        ShapeError: a direction is zero or points opposite the other (no smallest rotation),
+            or a vector is not ``(3,)``.
+    """
+    a = np.asarray(axis, dtype=np.float64)
+    b = np.asarray(onto, dtype=np.float64)
+    if a.shape != (3,) or b.shape != (3,) or not (np.linalg.norm(a) > 0 and np.linalg.norm(b) > 0):
+        raise ShapeError(f"axis and onto must be non-zero (3,) vectors, got {a}, {b}")
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    cross = np.cross(a, b)
+    sine, cosine = float(np.linalg.norm(cross)), float(a @ b)
+    if sine < 1e-12:
+        if cosine < 0:
+            raise ShapeError(f"axis {a} points opposite {b}: no smallest rotation between them")
+        return turn_about(a, 0.0, centre)
+    return turn_about(cross / sine, math.degrees(math.atan2(sine, cosine)), centre)

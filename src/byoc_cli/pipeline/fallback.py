@@ -53,13 +53,13 @@ class Fallback:
     Args:
         voxel_size: ``"auto"``, or the FPFH voxel in metres (twice the learned one: the
             features' reference voxels are 5 cm and 2.5 cm).
-        turns: the learned registrar's ``matching.turns``: FPFH's recipe carries it, so that
-            its results are checked against their turns about the up axis as the learned
+        turns: the learned registrar's ``matching.turns``: FPFH's recipe carries True, so
+            that its results are checked against their turns about the up axis as the learned
             ones are (:meth:`~byoc_cli.pipeline.solve.Solver.check_structure`; FPFH tries
-            no turned sources).
+            no turned sources); ``"auto"`` carries nothing: no structure check.
     """
 
-    def __init__(self, voxel_size: float | str, turns: bool = False) -> None:
+    def __init__(self, voxel_size: float | str, turns: bool | str = False) -> None:
         self.voxel_size = voxel_size
         self.turns = turns
         self._registrars: dict[tuple, Any] = {}
@@ -75,7 +75,7 @@ class Fallback:
 
         with self._lock:
             if changes not in self._registrars:
-                turns = self.turns or None  # None: the preset's
+                turns = True if self.turns is True else None  # None: the preset's
                 recipe = preset("fpfh").changed(**{"matching__turns": turns, **dict(changes)})
                 self._registrars[changes] = Registrar(
                     "fpfh", voxel_size=self.voxel_size, threads=1, recipe=recipe

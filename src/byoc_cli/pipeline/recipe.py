@@ -102,17 +102,19 @@ class MatchingRecipe:
             ratio is each match's weight, no threshold).
         mutual: keep only mutual nearest neighbours before the top-k selection.
         turns: learned features only: when the first result is below 0.95, extract the
-            source's features again turned by 60 to 300 deg (every 60) about its up axis and
-            keep the most confident (:mod:`byoc_cli.pipeline.turns`). With any features, a
-            result that reaches the gate is checked against its turns about the up axis
-            (its confidence capped at 0.1 when one fits what is not floor, ceiling or wall
-            better: :mod:`byoc_cli.pipeline.structure_check`).
+            source's features again turned by 60 to 300 deg (every 60) about the up axis and
+            keep the most confident (:mod:`byoc_cli.pipeline.turns`). True: also, with any
+            features, a result that reaches the gate is checked against its turns about the
+            up axis (its confidence capped at 0.1 when one fits what is not floor, ceiling or
+            wall better: :mod:`byoc_cli.pipeline.structure_check`). ``"auto"`` (the ``byoc``
+            preset): the turned tries alone, where the features see the clouds at their own
+            voxel (depth frames, RGB-D fragments).
     """
 
     max_points: int
     correspondences: int
     mutual: bool = False
-    turns: bool = False
+    turns: bool | str = False
 
 
 @dataclass(frozen=True)
@@ -250,7 +252,7 @@ PRESETS: dict[str, RegistrationRecipe] = {
     # RR 51.0 % -> 60.4 %), then FPFH gives a second opinion (docs/confidence.md).
     "byoc": RegistrationRecipe(
         FeaturesRecipe("byoc"),
-        MatchingRecipe(max_points=5000, correspondences=2500),
+        MatchingRecipe(max_points=5000, correspondences=2500, turns="auto"),
         FittingRecipe(),
         RefinementRecipe("multiscale"),
         GateRecipe(fallback="fpfh", retries=2, recheck=True, visibility=True),

@@ -111,7 +111,7 @@ RULES: dict[str, FieldRule] = {
     "matching.max_points": FieldRule("int", 0, limits.MAX_MATCH_POINTS),
     "matching.correspondences": FieldRule("int", 3, limits.MAX_MATCH_POINTS),
     "matching.mutual": FieldRule("bool"),
-    "matching.turns": FieldRule("bool"),
+    "matching.turns": FieldRule("bool", words=("auto",)),
     "fitting.estimator": FieldRule("choice", words=ESTIMATORS),
     "fitting.inlier_factor": FieldRule("number", 0, limits.MAX_INLIER_FACTOR, low_open=True),
     "fitting.ransac_iterations": FieldRule("int", 1, limits.MAX_RANSAC_ITERATIONS),

@@ -107,7 +107,7 @@ class RegisterConfig:
     seed: int = PAPER.seed
     chunk_size: int | None = None
     confidence_model: str = PAPER.features.kind
-    structure_check: bool = PAPER.matching.turns
+    structure_check: bool = PAPER.matching.turns is True
     turn_rooms: bool = False
 
     def __post_init__(self) -> None:
@@ -144,7 +144,7 @@ def register_config(recipe: RegistrationRecipe, refine: bool = True) -> Register
         min_confidence=recipe.gate.min_confidence,
         seed=recipe.seed,
         confidence_model=recipe.features.kind,
-        structure_check=recipe.matching.turns,
+        structure_check=recipe.matching.turns is True,
     )
 
 

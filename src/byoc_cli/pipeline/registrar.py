@@ -88,7 +88,7 @@ class Registrar(Featurizer):
         super().__init__(recipe, weights, resolve_device(device))
         self.fallback = None if recipe.gate.fallback == "none" else recipe.gate.fallback
         self.fallback_below = float(recipe.gate.min_confidence)
-        self.turns = recipe.matching.turns and self.features == "byoc"
+        self.turns = recipe.matching.turns if self.features == "byoc" else False
         self.threads = threads or torch.get_num_threads()
         self._executor = None
         self._lock = threading.Lock()
