@@ -155,13 +155,13 @@ def _options() -> dict[str, Callable]:
             help="With byoc features: when the confidence is below 0.95, extract the source's "
             "features again turned by 60 to 300 deg (every 60) about the up axis (the "
             "source's tilted onto the target's) and keep the most confident result; a result "
-            "that fits as well turned elsewhere exits 3 as ambiguous. --turns also turns a "
+            "that fits as well turned elsewhere exits 3 as ambiguous. The flag also turns a "
             "result that passes 90, 180 and 270 deg, with any features, and it exits 3 as "
             "ambiguous when a turn fits what is not floor, ceiling or wall as well. For scans "
             "turned far apart about the vertical (terrestrial scanner stations, turntables): "
             "docs/registering.md, Turned scans. The byoc preset's auto: the turned tries "
-            "alone, where the features see the clouds at their own voxel (depth frames, RGB-D "
-            f"fragments). {_default('matching.turns')}",
+            "alone, below 0.85, where the features see the clouds at their own voxel (depth "
+            f"frames, RGB-D fragments). {_default('matching.turns')}",
         ),
         "seed": click.option(
             "--seed",
