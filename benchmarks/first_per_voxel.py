@@ -15,9 +15,7 @@ Usage: python benchmarks/first_per_voxel.py [--repeat 5] [--sizes 100000 1000000
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from byoc_cli.geometry.sampling import first_of_keys, nearest_spacing
-from kdtree import DATA, lidar_ground
+from kdtree import DATA, lidar_ground, median_seconds
 
 
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -38,15 +36,6 @@ def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def with_numpy(keys: np.ndarray) -> np.ndarray:
     return np.sort(np.unique(keys, return_index=True)[1])
-
-
-def median_seconds(call, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:
@@ -66,8 +55,8 @@ def main() -> None:
         kept = first_of_keys(keys)
         if not np.array_equal(kept, with_numpy(keys)):
             raise SystemExit(f"{name}: first_of_keys differs from numpy's unique")
-        slow = median_seconds(lambda k=keys: with_numpy(k), args.repeat)
-        fast = median_seconds(lambda k=keys: first_of_keys(k), args.repeat)
+        slow = median_seconds(with_numpy, keys, args.repeat)
+        fast = median_seconds(first_of_keys, keys, args.repeat)
         print(
             f"{name:14s} {len(points):9d} {len(kept):9d} {slow:8.4f}s {fast:8.4f}s "
             f"{slow / fast:6.2f}"

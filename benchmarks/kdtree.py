@@ -88,7 +88,8 @@ def cell_grid(points: np.ndarray) -> None:
         cell *= 2
 
 
-def _median_seconds(fn, points: np.ndarray, repeat: int) -> float:
+def median_seconds(fn, points: np.ndarray, repeat: int) -> float:
+    """The median seconds of ``repeat`` calls ``fn(points)``."""
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
@@ -114,7 +115,7 @@ def main() -> None:
         trees["cell grid (before)"] = cell_grid
     print(f"{'cloud':32s} {'points':>8s} " + " ".join(f"{t:>20s}" for t in trees))
     for name, points in clouds.items():
-        seconds = {t: _median_seconds(fn, points, args.repeat) for t, fn in trees.items()}
+        seconds = {t: median_seconds(fn, points, args.repeat) for t, fn in trees.items()}
         base = seconds["pykdtree"]
         cells = " ".join(f"{s:9.4f} s {s / base:6.1f}x" for s in seconds.values())
         print(f"{name:32s} {len(points):8d} {cells}", flush=True)
